@@ -1,0 +1,26 @@
+"""mfmjax: continuous-time system identification with modulating functions, in JAX.
+
+Importing mfmjax enables JAX's float64 mode (`jax_enable_x64`): the Gram matrices of the method
+are useless in float32. Every array mfmjax returns is float64.
+"""
+
+import jax as _jax
+
+_jax.config.update("jax_enable_x64", True)
+
+from ._gram import gram as gram  # noqa: E402
+from ._gram import modulated_signals as modulated_signals  # noqa: E402
+from ._identify import identify as identify  # noqa: E402
+from ._model import Model as Model  # noqa: E402
+from ._modulating import ModulatingFunction as ModulatingFunction  # noqa: E402
+from ._modulating import phi as phi  # noqa: E402
+from ._modulating import phi_integral as phi_integral  # noqa: E402
+from ._modulating import phi_scaled as phi_scaled  # noqa: E402
+from ._quadrature import kernel_weights as kernel_weights  # noqa: E402
+from ._signals import Signals as Signals  # noqa: E402
+from ._solve import closed_form as closed_form  # noqa: E402
+from ._solve import constrained_solve as constrained_solve  # noqa: E402
+from ._status import Status as Status  # noqa: E402
+from ._structure import Structure as Structure  # noqa: E402
+
+__version__ = "0.1.0"

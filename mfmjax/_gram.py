@@ -1,0 +1,115 @@
+r"""Modulated signals $c(t)$ (eq. 3-6) and the Gram matrix $G$ (eq. 9-10).
+
+Columns, in order: $y_0..y_n$, $-u_{10}..-u_{1m_1}$, ..., $-u_{K0}..-u_{Km_K}$ and, when the
+signals carry an offset term, $-u_{\text{off},0}$ for the constant input 1. Each column is the
+paper's column divided by $h^{N+M+1}$ (a common factor, so $\theta$ of eq. 12 is unchanged and
+$J$ is rescaled by it in `identify`); the remaining factor $h^{-i}$ keeps the raw meaning of
+$\theta$. The Gram integral runs over the valid samples $t_k \ge t_0 + \max_k(\tau_k) + h$
+(rounded up to the grid) with the Gregory rule (O(dt^4)).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._modulating import ModulatingFunction
+from ._quadrature import (
+    gregory_weights,
+    kernel_length,
+    kernel_weights,
+    modulate,
+    support_samples,
+)
+from ._signals import Signals
+from ._structure import Structure
+
+MIN_VALID = 8  # fewest valid samples accepted for the Gram integral
+
+
+class ModulatedSignals(eqx.Module):
+    """Columns of c(t) on the whole record, with the Gram quadrature weights (0 where invalid)."""
+
+    columns: jax.Array  # (T, p)
+    weights: jax.Array  # (T,)
+    bounds: jax.Array  # (p,) upper bound of each column's L2 norm (dead-column test)
+    first: jax.Array  # index of the first valid sample
+    excited: jax.Array  # (K,) bool: input k varies on the record
+
+
+def column_sources(signals: Signals, structure: Structure):
+    """Static list of (signal index, derivative order, rule, sign) per column; -1 is y, K offset."""
+    K = signals.n_inputs
+    srcs = [(-1, i, signals.output_rule, 1.0) for i in range(structure.n + 1)]
+    for k in range(K):
+        rule = "cubic" if signals.smooth[k] else signals.intersample[k]
+        srcs += [(k, j, rule, -1.0) for j in range(structure.m[k] + 1)]
+    if signals.offset:
+        srcs.append((K, 0, "zoh", -1.0))
+    return srcs
+
+
+def static_span(signals: Signals, mf: ModulatingFunction, delay_max: float | None) -> float:
+    """Largest tau + h, fixing the static kernel length."""
+    if mf.h_max is None:
+        raise ValueError(
+            "identify(): h is traced (jit/vmap/grad) but no static bound is known; "
+            "pass ModulatingFunction(..., h_max=...)"
+        )
+    if delay_max is None:
+        if isinstance(signals.delays, jax.core.Tracer):
+            raise ValueError(
+                "identify(): delays are traced but no static bound is known; pass delay_max=..."
+            )
+        delay_max = float(np.max(np.asarray(signals.delays), initial=0.0))
+    return mf.h_max + delay_max
+
+
+def modulated_signals(
+    signals: Signals, structure: Structure, mf: ModulatingFunction, delay_max: float | None = None
+) -> ModulatedSignals:
+    r"""All columns of $c(t)$ (eq. 6), scaled as described in the module docstring."""
+    dt = signals.dt
+    length = kernel_length(static_span(signals, mf, delay_max), dt)
+    T = signals.n_samples
+    K = signals.n_inputs
+    data = [signals.u[:, k] for k in range(K)] + [jnp.ones(T, dtype=jnp.float64)]
+    delays = [signals.delays[k] for k in range(K)] + [jnp.asarray(0.0)]
+    cols, bounds, first = [], [], jnp.asarray(0, dtype=jnp.int32)
+    for src, i, rule, sign in column_sources(signals, structure):
+        x = signals.y if src == -1 else data[src]
+        tau = jnp.asarray(0.0) if src == -1 else delays[src]
+        w = kernel_weights(mf, i, dt, rule, tau, length) * (sign * mf.h ** (-i))
+        cols.append(modulate(x, w))
+        bounds.append(jnp.sum(jnp.abs(w)) * jnp.max(jnp.abs(x)))
+        first = jnp.maximum(first, support_samples(tau + mf.h, dt))
+    q = gregory_weights(T, first, dt)
+    bounds = jnp.stack(bounds) * jnp.sqrt(jnp.sum(q))
+    u = signals.u
+    spread = jnp.max(u, axis=0, initial=-jnp.inf) - jnp.min(u, axis=0, initial=jnp.inf)
+    excited = spread > 1e-12 * jnp.maximum(jnp.max(jnp.abs(u), axis=0, initial=0.0), 1e-300)
+    return ModulatedSignals(jnp.stack(cols, axis=1), q, bounds, first, excited)
+
+
+def gram(ms: ModulatedSignals) -> jax.Array:
+    r"""$G = \int c(t) c(t)^T dt$ (eq. 9-10), Gregory rule on the valid samples."""
+    C = ms.columns
+    return C.T @ (ms.weights[:, None] * C)
+
+
+def check_record_length(signals: Signals, mf: ModulatingFunction, n_params: int):
+    """Boundary check: the record must hold h (+ delays) plus enough valid samples."""
+    if isinstance(mf.h, jax.core.Tracer) or isinstance(signals.delays, jax.core.Tracer):
+        return
+    span = float(jnp.max(mf.h)) + float(np.max(np.asarray(signals.delays), initial=0.0))
+    first = int(support_samples(span, signals.dt))
+    need = max(MIN_VALID, 2 * n_params)
+    if signals.n_samples - first < need:
+        raise ValueError(
+            f"identify(): the record ({signals.duration:g} time units, {signals.n_samples} "
+            f"samples) is too short for h={float(jnp.max(mf.h)):g} plus delays: it leaves "
+            f"{max(signals.n_samples - first, 0)} valid samples, need {need}; "
+            "use a smaller h or a longer record"
+        )

@@ -1,0 +1,183 @@
+"""The identified (or given) continuous-time MISO model of eq. (1)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._modulating import ModulatingFunction
+from ._status import Status, describe
+from ._structure import Structure
+
+
+class Model(eqx.Module):
+    r"""$\sum_{i=0}^n a_i y^{(i)} = \sum_k \sum_{j=0}^{m_k} b_{kj} u_k^{(j)}(t - \tau_k)
+    [+ b_{\text{off}}]$ with $a_n = 1$.
+
+    Fields: `a` (n+1,), `b` (tuple of K arrays (m_k+1,)), `offset` (constant term, 0 when the
+    model has none), `delays` (K,), and what identification reported: `theta` (the raw
+    $\eta$-normalised vector of eq. 12, ordered [a; b_1; ..; b_K; b_off]), `J` (equation-error
+    cost $\sqrt{\theta^T G \theta}$ of eq. 8), `cond` (cond of the equilibrated G), `status`
+    (bit flags, see `Status`), `mf` (the modulating function used). A pytree: jit/vmap friendly.
+    """
+
+    a: jax.Array
+    b: tuple[jax.Array, ...]
+    offset: jax.Array
+    delays: jax.Array
+    theta: jax.Array
+    J: jax.Array
+    cond: jax.Array
+    status: jax.Array
+    mf: ModulatingFunction | None
+    structure: Structure
+    intersample: tuple[str, ...] = eqx.field(static=True)
+    has_offset: bool = eqx.field(static=True)
+    output_name: str = eqx.field(static=True, default="y")
+    input_names: tuple[str, ...] = eqx.field(static=True, default=())
+
+    @property
+    def n(self) -> int:
+        return self.structure.n
+
+    @property
+    def m(self) -> tuple[int, ...]:
+        return self.structure.m
+
+    @property
+    def n_inputs(self) -> int:
+        return len(self.structure.m)
+
+    @property
+    def ok(self):
+        return self.status == 0
+
+    @classmethod
+    def from_coefficients(
+        cls,
+        a: Sequence[float],
+        b: Sequence[Sequence[float]] = (),
+        *,
+        offset: float | None = None,
+        delays: Sequence[float] | None = None,
+        intersample: Sequence[str] | None = None,
+        output_name: str = "y",
+        input_names: Sequence[str] | None = None,
+    ) -> Model:
+        """A model from given coefficients a (a_0..a_n) and b (b_k0..b_km_k per input).
+
+        Coefficients are normalised to a_n = 1. Raises if a_n = 0 or the orders are invalid.
+        """
+        a = np.asarray(a, dtype=np.float64)
+        if a.ndim != 1 or a.size < 2:
+            raise ValueError("Model.from_coefficients(): a must list a_0..a_n with n >= 1")
+        if not np.all(np.isfinite(a)):
+            raise ValueError("Model.from_coefficients(): a contains NaN or inf")
+        if a[-1] == 0:
+            raise ValueError(
+                "Model.from_coefficients(): a_n (the last entry of a) must be nonzero; "
+                "drop trailing zeros to lower the order"
+            )
+        bs = [np.atleast_1d(np.asarray(bk, dtype=np.float64)) for bk in b]
+        for k, bk in enumerate(bs):
+            if not np.all(np.isfinite(bk)):
+                raise ValueError(f"Model.from_coefficients(): b[{k}] contains NaN or inf")
+        structure = Structure(a.size - 1, [bk.size - 1 for bk in bs])
+        K = len(bs)
+        an = a[-1]
+        if delays is None:
+            delays = np.zeros(K)
+        delays = np.asarray(delays, dtype=np.float64).reshape(-1)
+        if delays.shape != (K,) or np.any(delays < 0) or not np.all(np.isfinite(delays)):
+            raise ValueError(
+                f"Model.from_coefficients(): delays needs {K} finite values >= 0 (got {delays})"
+            )
+        intersample = tuple(intersample) if intersample is not None else ("foh",) * K
+        if len(intersample) != K or any(s not in ("zoh", "foh") for s in intersample):
+            raise ValueError(
+                f"Model.from_coefficients(): intersample needs {K} entries of 'zoh'/'foh'"
+            )
+        theta = np.concatenate([a] + bs + ([np.array([offset])] if offset is not None else []))
+        return cls(
+            a=jnp.asarray(a / an),
+            b=tuple(jnp.asarray(bk / an) for bk in bs),
+            offset=jnp.asarray(0.0 if offset is None else offset / an),
+            delays=jnp.asarray(delays),
+            theta=jnp.asarray(theta / np.sum(theta) if np.sum(theta) != 0 else theta),
+            J=jnp.asarray(jnp.nan),
+            cond=jnp.asarray(jnp.nan),
+            status=jnp.asarray(0, dtype=jnp.int32),
+            mf=None,
+            structure=structure,
+            intersample=intersample,
+            has_offset=offset is not None,
+            output_name=output_name,
+            input_names=tuple(input_names)
+            if input_names is not None
+            else tuple(f"u{k + 1}" for k in range(K)),
+        )
+
+    def summary(self) -> str:
+        """A readable table of the parameters and fit diagnostics (concrete models only)."""
+        lines = [
+            f"continuous-time model  n={self.n}  m={list(self.m)}"
+            + (
+                f"  (N={_num(self.mf.N)}, M={_num(self.mf.M)}, h={float(self.mf.h):g})"
+                if self.mf is not None
+                else ""
+            ),
+            f"{'parameter':<14}{'value':>16}",
+        ]
+        for i, ai in enumerate(np.asarray(self.a)):
+            lines.append(f"{f'a_{i}':<14}{ai:>16.6e}")
+        for k, bk in enumerate(self.b):
+            for j, bkj in enumerate(np.asarray(bk)):
+                lines.append(f"{f'b_{k + 1}{j}':<14}{bkj:>16.6e}")
+        if self.has_offset:
+            lines.append(f"{'offset':<14}{float(self.offset):>16.6e}")
+        for k, tau in enumerate(np.asarray(self.delays)):
+            if tau:
+                lines.append(f"{f'delay_{k + 1}':<14}{tau:>16.6g}")
+        if self.mf is not None:
+            lines.append(f"{'J':<14}{float(self.J):>16.6e}")
+            lines.append(f"{'cond(G_eq)':<14}{float(self.cond):>16.3e}")
+        lines.append(f"{'status':<14}{describe(int(self.status)):>16}")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """Plain-Python description (JSON-ready) of a concrete model."""
+        out = {
+            "n": self.n,
+            "m": list(self.m),
+            "a": [float(v) for v in np.asarray(self.a)],
+            "b": [[float(v) for v in np.asarray(bk)] for bk in self.b],
+            "delays": [float(v) for v in np.asarray(self.delays)],
+            "intersample": list(self.intersample),
+            "offset": float(self.offset) if self.has_offset else None,
+            "theta": [float(v) for v in np.asarray(self.theta)],
+            "J": _json_float(self.J),
+            "cond": _json_float(self.cond),
+            "status": describe(int(self.status)),
+            "output_name": self.output_name,
+            "input_names": list(self.input_names),
+        }
+        if self.mf is not None:
+            out.update(N=_num(self.mf.N), M=_num(self.mf.M), h=float(self.mf.h))
+        return out
+
+
+def _num(x):
+    v = float(np.asarray(x))
+    return int(v) if v == int(v) else v
+
+
+def _json_float(x):
+    v = float(np.asarray(x))
+    return v if np.isfinite(v) else None
+
+
+__all__ = ["Model", "Status"]

@@ -1,0 +1,284 @@
+"""One experiment's sampled data: output y, K inputs, time grid, intersample behaviour, delays.
+
+Conventions (written once): arrays are time-major, `y` has shape (T,), `u` has shape (T, K);
+batch axes go in front. Sample k is at time `t0 + k * dt`.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+INTERSAMPLE = ("zoh", "foh")
+_UNIFORM_RTOL = 1e-6  # allowed relative jitter of the time column against its mean step
+
+
+def _concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _per_input(value, K: int, name: str, default, cast):
+    if value is None:
+        return tuple(default for _ in range(K))
+    if isinstance(value, (str, bool, int, float)) and not isinstance(value, (list, tuple)):
+        return tuple(cast(value) for _ in range(K))
+    value = tuple(value)
+    if len(value) != K:
+        raise ValueError(f"Signals(): {name} needs one entry per input ({K}), got {len(value)}")
+    return tuple(cast(v) for v in value)
+
+
+class Signals(eqx.Module):
+    """Validated container for one experiment (uniform sampling, MISO).
+
+    **Arguments:**
+
+    - `y`: output samples, shape (T,).
+    - `u`: input samples, shape (T, K) (or (T,) for K = 1, or None for K = 0).
+    - `dt`: sampling interval, or give `t` (a uniform, increasing time column) instead.
+    - `t0`: time of the first sample (ignored when `t` is given).
+    - `intersample`: per input, `"zoh"` (piecewise constant, e.g. a digital controller's
+      output) or `"foh"` (piecewise linear). Default `"foh"`.
+    - `delays`: per input transport delay in time units (>= 0, any real value).
+    - `offset`: add a constant input (u = 1, m = 0) to the model, for signals with an offset.
+    - `smooth`: per input, use the higher-order (cubic) rule as for the output.
+    - `output_rule`: quadrature rule of the output, `"cubic"` (default, O(dt^4)) or `"foh"`
+      (piecewise linear, for comparison).
+    - `output_name`, `input_names`: labels for tables and files.
+    """
+
+    y: jax.Array
+    u: jax.Array
+    delays: jax.Array
+    dt: float = eqx.field(static=True)
+    t0: float = eqx.field(static=True)
+    intersample: tuple[str, ...] = eqx.field(static=True)
+    smooth: tuple[bool, ...] = eqx.field(static=True)
+    offset: bool = eqx.field(static=True)
+    output_rule: str = eqx.field(static=True)
+    output_name: str = eqx.field(static=True)
+    input_names: tuple[str, ...] = eqx.field(static=True)
+
+    def __init__(
+        self,
+        y,
+        u=None,
+        *,
+        dt: float | None = None,
+        t=None,
+        t0: float = 0.0,
+        intersample=None,
+        delays=None,
+        offset: bool = False,
+        smooth=None,
+        output_rule: str = "cubic",
+        output_name: str = "y",
+        input_names: Sequence[str] | None = None,
+    ):
+        y = jnp.asarray(y, dtype=jnp.float64)
+        if y.ndim != 1:
+            raise ValueError(f"Signals(): y must be 1-D (T,), got shape {y.shape}")
+        T = y.shape[0]
+        if u is None:
+            u = jnp.zeros((T, 0), dtype=jnp.float64)
+        u = jnp.asarray(u, dtype=jnp.float64)
+        if u.ndim == 1:
+            u = u[:, None]
+        if u.ndim != 2:
+            raise ValueError(f"Signals(): u must have shape (T, K), got {u.shape}")
+        if u.shape[0] != T:
+            raise ValueError(
+                f"Signals(): length mismatch: y has {T} samples but u has {u.shape[0]}; "
+                "pass columns of equal length"
+            )
+        K = u.shape[1]
+        if t is not None:
+            if dt is not None:
+                raise ValueError("Signals(): give either t (a time column) or dt, not both")
+            t = np.asarray(t, dtype=np.float64)
+            if t.shape != (T,):
+                raise ValueError(
+                    f"Signals(): length mismatch: time has {t.shape[0] if t.ndim else 0} "
+                    f"samples but y has {T}"
+                )
+            if not np.all(np.isfinite(t)):
+                raise ValueError("Signals(): time column contains NaN or inf; clean it first")
+            steps = np.diff(t)
+            if T < 2 or np.any(steps <= 0):
+                bad = int(np.argmax(steps <= 0)) + 1 if T >= 2 else 0
+                raise ValueError(
+                    f"Signals(): time must be strictly increasing (row {bad} is not); "
+                    "sort the record or drop duplicate rows"
+                )
+            dt = float((t[-1] - t[0]) / (T - 1))
+            if np.max(np.abs(steps - dt)) > _UNIFORM_RTOL * dt:
+                bad = int(np.argmax(np.abs(steps - dt))) + 1
+                raise ValueError(
+                    f"Signals(): time is not uniformly sampled (step at row {bad} is "
+                    f"{steps[bad - 1]:g}, mean step {dt:g}); resample to a uniform grid"
+                )
+            t0 = float(t[0])
+        if dt is None:
+            raise ValueError("Signals(): give the sampling interval dt or a time column t")
+        dt = float(dt)
+        if not (math.isfinite(dt) and dt > 0):
+            raise ValueError(f"Signals(): dt must be > 0 and finite (got dt={dt})")
+        intersample = _per_input(intersample, K, "intersample", "foh", str)
+        for k, mode in enumerate(intersample):
+            if mode not in INTERSAMPLE:
+                raise ValueError(
+                    f"Signals(): unknown intersample mode {mode!r} for input {k + 1}; "
+                    f"use one of {INTERSAMPLE}"
+                )
+        smooth = _per_input(smooth, K, "smooth", False, bool)
+        if output_rule not in ("cubic", "foh"):
+            raise ValueError(
+                f"Signals(): unknown output_rule {output_rule!r}; use 'cubic' or 'foh'"
+            )
+        if delays is None:
+            delays = jnp.zeros(K, dtype=jnp.float64)
+        delays = jnp.atleast_1d(jnp.asarray(delays, dtype=jnp.float64))
+        if delays.shape != (K,):
+            raise ValueError(
+                f"Signals(): delays needs one entry per input ({K}), got shape {delays.shape}"
+            )
+        if _concrete(delays):
+            dv = np.asarray(delays)
+            if not np.all(np.isfinite(dv)) or np.any(dv < 0):
+                raise ValueError(f"Signals(): delays must be finite and >= 0 (got {dv.tolist()})")
+            if np.any(dv >= (T - 1) * dt):
+                raise ValueError(
+                    f"Signals(): a delay ({dv.max():g}) is not shorter than the record "
+                    f"({(T - 1) * dt:g}); check the time unit of delays"
+                )
+        names = tuple(input_names) if input_names is not None else tuple(
+            f"u{k + 1}" for k in range(K)
+        )
+        if len(names) != K:
+            raise ValueError(f"Signals(): input_names needs {K} names, got {len(names)}")
+        for label, arr in [(output_name, y)] + [(names[k], u[:, k]) for k in range(K)]:
+            if _concrete(arr):
+                finite = np.isfinite(np.asarray(arr))
+                if not finite.all():
+                    row = int(np.argmin(finite))
+                    raise ValueError(
+                        f"Signals(): column {label!r} has a NaN or inf sample at row {row}; "
+                        "remove or interpolate it before identification"
+                    )
+        self.y, self.u, self.delays = y, u, delays
+        self.dt, self.t0 = dt, float(t0)
+        self.intersample, self.smooth, self.offset = intersample, smooth, bool(offset)
+        self.output_rule = output_rule
+        self.output_name, self.input_names = str(output_name), names
+
+    # -- derived quantities -------------------------------------------------------------------
+    @property
+    def n_samples(self) -> int:
+        return self.y.shape[-1]
+
+    @property
+    def n_inputs(self) -> int:
+        """K, the number of measured inputs (the offset term is not counted)."""
+        return self.u.shape[-1]
+
+    @property
+    def duration(self) -> float:
+        return (self.n_samples - 1) * self.dt
+
+    @property
+    def t(self) -> jax.Array:
+        return self.t0 + self.dt * jnp.arange(self.n_samples, dtype=jnp.float64)
+
+    # -- constructors ---------------------------------------------------------------------------
+    @classmethod
+    def from_columns(
+        cls,
+        columns: dict,
+        *,
+        output: str,
+        inputs: Sequence[str] = (),
+        time: str | None = None,
+        dt: float | None = None,
+        source: str = "data",
+        **kwargs,
+    ) -> Signals:
+        """Build from a mapping of column name -> 1-D array (used by the CSV and pandas paths)."""
+        inputs = list(inputs)
+        available = list(columns)
+        for role, name in [("output", output)] + [("inputs", c) for c in inputs] + (
+            [("time", time)] if time is not None else []
+        ):
+            if name not in columns:
+                raise ValueError(
+                    f"{source}: unknown column {name!r} for {role}; available: {available}"
+                )
+        if time is None and dt is None:
+            raise ValueError(f"{source}: give a time column (time=...) or the sampling interval dt")
+        arrays = {}
+        for name in [output, *inputs] + ([time] if time else []):
+            arrays[name] = np.asarray(columns[name], dtype=np.float64)
+        u = np.stack([arrays[c] for c in inputs], axis=1) if inputs else None
+        return cls(
+            arrays[output],
+            u,
+            dt=dt,
+            t=arrays[time] if time else None,
+            output_name=output,
+            input_names=inputs,
+            **kwargs,
+        )
+
+    @classmethod
+    def from_csv(cls, path, *, output: str, inputs: Sequence[str] = (), time=None, dt=None,
+                 **kwargs) -> Signals:
+        """Read a CSV file with a header row; columns chosen by name (see `Signals`)."""
+        columns = read_csv(path)
+        return cls.from_columns(columns, output=output, inputs=inputs, time=time, dt=dt,
+                                source=f"{path}", **kwargs)
+
+    @classmethod
+    def from_dataframe(cls, df, *, output: str, inputs: Sequence[str] = (), time=None, dt=None,
+                       **kwargs) -> Signals:
+        """Build from a pandas DataFrame (pandas is optional and only needed here)."""
+        columns = {str(c): df[c].to_numpy(dtype=np.float64, na_value=np.nan) for c in df.columns}
+        return cls.from_columns(columns, output=output, inputs=inputs, time=time, dt=dt,
+                                source="DataFrame", **kwargs)
+
+
+def read_csv(path) -> dict[str, np.ndarray]:
+    """Read a headed CSV of numbers into {name: float64 array}; clear errors on bad cells."""
+    try:
+        fh = open(path, newline="")
+    except OSError as err:
+        raise ValueError(f"cannot read {path}: {err.strerror}") from None
+    with fh:
+        reader = csv.reader(fh)
+        try:
+            header = [h.strip() for h in next(reader)]
+        except StopIteration:
+            raise ValueError(f"{path}: the file is empty; expected a header row") from None
+        if len(set(header)) != len(header):
+            raise ValueError(f"{path}: duplicate column names in the header {header}")
+        rows = []
+        for lineno, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise ValueError(
+                    f"{path}: line {lineno} has {len(row)} fields, the header has {len(header)}; "
+                    "all columns must have equal length"
+                )
+            try:
+                rows.append([float(c) if c.strip() else math.nan for c in row])
+            except ValueError:
+                raise ValueError(f"{path}: line {lineno} has a non-numeric value") from None
+    if not rows:
+        raise ValueError(f"{path}: no data rows after the header")
+    data = np.asarray(rows, dtype=np.float64)
+    return {name: data[:, j] for j, name in enumerate(header)}

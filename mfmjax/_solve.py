@@ -1,0 +1,63 @@
+r"""Constrained minimisation of $\theta^T G \theta$ subject to $\eta^T\theta = 1$ (eq. 11-12)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from ._status import Status
+
+DEAD_COLUMN_RTOL = 1e-10  # column norm below this fraction of its bound: no excitation, masked
+ILL_CONDITIONED = 1e12  # lambda_max / lambda_2 of the equilibrated G above this: flagged
+_EPS = jnp.finfo(jnp.float64).eps
+
+
+def closed_form(G, eta):
+    r"""The paper's eq. (12): $\theta^0 = G^{-1}\eta / (\eta^T G^{-1} \eta)$. Reference only.
+
+    Fails (inf/NaN) when G is singular, which it is on noise-free data in exact arithmetic.
+    """
+    g = jnp.linalg.solve(G, eta)
+    return g / (eta @ g)
+
+
+def constrained_solve(G, eta, active):
+    r"""Production solve of eq. (11): equilibrated KKT system, well defined for singular G.
+
+    With $D = \mathrm{diag}(G)^{-1/2}$ on the active columns, $\tilde G = D G D$ and
+    $e = D\eta$ (scaled to unit norm), solve
+    $\begin{bmatrix}\tilde G & e\\ e^T & 0\end{bmatrix}
+     \begin{bmatrix}\tilde\theta\\ \lambda\end{bmatrix} = \begin{bmatrix}0\\ 1/\|e\|\end{bmatrix}$,
+    $\theta = D\tilde\theta$. This is the same minimiser as eq. (12) whenever G is invertible, and
+    stays unique while $G$ is positive definite on $\{\eta^T\theta = 0\}$. Inactive (masked)
+    columns get $\theta_j = 0$.
+
+    **Returns:** `(theta, cond, reduced_cond)`: `cond` is cond of the equilibrated active block
+    (capped at 1/eps), `reduced_cond` is $\lambda_{max}/\lambda_2$, the conditioning of the
+    constrained problem.
+    """
+    p = G.shape[0]
+    active = jnp.asarray(active, dtype=bool)
+    diag = jnp.diagonal(G)
+    d = jnp.where(active & (diag > 0), 1.0 / jnp.sqrt(jnp.where(diag > 0, diag, 1.0)), 1.0)
+    Gt = d[:, None] * G * d[None, :]
+    mask2 = active[:, None] & active[None, :]
+    Gt = jnp.where(mask2, Gt, jnp.where(jnp.eye(p, dtype=bool), 1.0, 0.0))
+    e = jnp.where(active, d * eta, 0.0)
+    s = jnp.linalg.norm(e)
+    s = jnp.where(s > 0, s, 1.0)
+    kkt = jnp.block([[Gt, (e / s)[:, None]], [(e / s)[None, :], jnp.zeros((1, 1))]])
+    rhs = jnp.zeros(p + 1).at[p].set(1.0 / s)
+    sol = jnp.linalg.solve(kkt, rhs)
+    theta = jnp.where(active, d * sol[:p], 0.0)
+    lam = jnp.linalg.eigvalsh(jnp.where(mask2, Gt, 0.0))  # ascending; inactive give zeros
+    n_off = p - jnp.sum(active)
+    lmax = lam[-1]
+    lmin = jnp.maximum(lam[jnp.clip(n_off, 0, p - 1)], lmax * _EPS)
+    l2 = jnp.maximum(lam[jnp.clip(n_off + 1, 0, p - 1)], lmax * _EPS)
+    return theta, lmax / lmin, lmax / l2
+
+
+def solve_status(theta, reduced_cond, finite_data):
+    """Status bits of a solve (see `Status`)."""
+    status = jnp.where(finite_data & jnp.all(jnp.isfinite(theta)), 0, Status.NONFINITE)
+    return status | jnp.where(reduced_cond > ILL_CONDITIONED, Status.ILL_CONDITIONED, 0)
