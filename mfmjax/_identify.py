@@ -79,6 +79,8 @@ def _identify(signals, structure, mf, eta, delay_max):
     offset = theta[pos] / div if signals.offset else jnp.asarray(0.0)
     quad = jnp.maximum(theta @ G @ theta, 0.0)
     J = mf.h ** (mf.N + mf.M + 1) * jnp.sqrt(quad)  # undo the common factor (see _gram)
+    terms = jnp.sum(theta**2 * jnp.diagonal(G))
+    J_rel = jnp.sqrt(quad / jnp.where(terms > 0, terms, 1.0))
     return Model(
         a=theta[: n + 1] / div,
         b=tuple(bs),
@@ -86,6 +88,7 @@ def _identify(signals, structure, mf, eta, delay_max):
         delays=signals.delays,
         theta=theta,
         J=J,
+        J_rel=J_rel,
         cond=cond,
         status=status.astype(jnp.int32),
         mf=mf,

@@ -21,7 +21,8 @@ class Model(eqx.Module):
     Fields: `a` (n+1,), `b` (tuple of K arrays (m_k+1,)), `offset` (constant term, 0 when the
     model has none), `delays` (K,), and what identification reported: `theta` (the raw
     $\eta$-normalised vector of eq. 12, ordered [a; b_1; ..; b_K; b_off]), `J` (equation-error
-    cost $\sqrt{\theta^T G \theta}$ of eq. 8), `cond` (cond of the equilibrated G), `status`
+    cost $\sqrt{\theta^T G \theta}$ of eq. 8), `J_rel` (scale-free equation error
+    $\|c^T\theta\| / (\sum_i \theta_i^2 \|c_i\|^2)^{1/2}$), `cond` (cond of the equilibrated G), `status`
     (bit flags, see `Status`), `mf` (the modulating function used). A pytree: jit/vmap friendly.
     """
 
@@ -31,6 +32,7 @@ class Model(eqx.Module):
     delays: jax.Array
     theta: jax.Array
     J: jax.Array
+    J_rel: jax.Array
     cond: jax.Array
     status: jax.Array
     mf: ModulatingFunction | None
@@ -109,6 +111,7 @@ class Model(eqx.Module):
             delays=jnp.asarray(delays),
             theta=jnp.asarray(theta / np.sum(theta) if np.sum(theta) != 0 else theta),
             J=jnp.asarray(jnp.nan),
+            J_rel=jnp.asarray(jnp.nan),
             cond=jnp.asarray(jnp.nan),
             status=jnp.asarray(0, dtype=jnp.int32),
             mf=None,
@@ -144,6 +147,7 @@ class Model(eqx.Module):
                 lines.append(f"{f'delay_{k + 1}':<14}{tau:>16.6g}")
         if self.mf is not None:
             lines.append(f"{'J':<14}{float(self.J):>16.6e}")
+            lines.append(f"{'J_rel':<14}{float(self.J_rel):>16.6e}")
             lines.append(f"{'cond(G_eq)':<14}{float(self.cond):>16.3e}")
         lines.append(f"{'status':<14}{describe(int(self.status)):>16}")
         return "\n".join(lines)
@@ -160,6 +164,7 @@ class Model(eqx.Module):
             "offset": float(self.offset) if self.has_offset else None,
             "theta": [float(v) for v in np.asarray(self.theta)],
             "J": _json_float(self.J),
+            "J_rel": _json_float(self.J_rel),
             "cond": _json_float(self.cond),
             "status": describe(int(self.status)),
             "output_name": self.output_name,

@@ -236,9 +236,9 @@ class Signals(eqx.Module):
 
     @classmethod
     def from_csv(cls, path, *, output: str, inputs: Sequence[str] = (), time=None, dt=None,
-                 **kwargs) -> Signals:
-        """Read a CSV file with a header row; columns chosen by name (see `Signals`)."""
-        columns = read_csv(path)
+                 names: Sequence[str] | None = None, **kwargs) -> Signals:
+        """Read a CSV file with a header row (or headerless, columns named by `names`)."""
+        columns = read_csv(path, names)
         return cls.from_columns(columns, output=output, inputs=inputs, time=time, dt=dt,
                                 source=f"{path}", **kwargs)
 
@@ -251,33 +251,46 @@ class Signals(eqx.Module):
                                 source="DataFrame", **kwargs)
 
 
-def read_csv(path) -> dict[str, np.ndarray]:
-    """Read a headed CSV of numbers into {name: float64 array}; clear errors on bad cells."""
+def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+    """Read a table of numbers into {name: float64 array}; clear errors on bad cells.
+
+    Comma-separated with a header row by default. With `names`, the file has no header and the
+    columns get these names; fields may then also be separated by whitespace (DaISy .dat files).
+    """
     try:
         fh = open(path, newline="")
     except OSError as err:
         raise ValueError(f"cannot read {path}: {err.strerror}") from None
     with fh:
-        reader = csv.reader(fh)
+        lines = [ln for ln in fh.read().splitlines() if ln.strip()]
+    if not lines:
+        raise ValueError(f"{path}: the file is empty; expected a header row")
+    comma = "," in lines[0]
+
+    def split(line):
+        return [c.strip() for c in (next(csv.reader([line])) if comma else line.split())]
+
+    if names is None:
+        header, body, first = split(lines[0]), lines[1:], 2
+    else:
+        header, body, first = [str(n) for n in names], lines, 1
+    if len(set(header)) != len(header):
+        raise ValueError(f"{path}: duplicate column names {header}")
+    rows = []
+    for lineno, line in enumerate(body, start=first):
+        row = split(line)
+        if len(row) != len(header):
+            raise ValueError(
+                f"{path}: line {lineno} has {len(row)} fields but there are {len(header)} "
+                "columns; all columns must have equal length"
+            )
         try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise ValueError(f"{path}: the file is empty; expected a header row") from None
-        if len(set(header)) != len(header):
-            raise ValueError(f"{path}: duplicate column names in the header {header}")
-        rows = []
-        for lineno, row in enumerate(reader, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(header):
-                raise ValueError(
-                    f"{path}: line {lineno} has {len(row)} fields, the header has {len(header)}; "
-                    "all columns must have equal length"
-                )
-            try:
-                rows.append([float(c) if c.strip() else math.nan for c in row])
-            except ValueError:
-                raise ValueError(f"{path}: line {lineno} has a non-numeric value") from None
+            rows.append([float(c) if c else math.nan for c in row])
+        except ValueError:
+            raise ValueError(
+                f"{path}: line {lineno} has a non-numeric value"
+                + ("" if names is not None else " (a file without header needs --names)")
+            ) from None
     if not rows:
         raise ValueError(f"{path}: no data rows after the header")
     data = np.asarray(rows, dtype=np.float64)
