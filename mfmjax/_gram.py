@@ -17,6 +17,7 @@ import numpy as np
 
 from ._modulating import ModulatingFunction
 from ._quadrature import (
+    delayed_samples,
     gregory_weights,
     kernel_length,
     kernel_weights,
@@ -93,6 +94,37 @@ def modulated_signals(
     return ModulatedSignals(jnp.stack(cols, axis=1), q, bounds, first, excited)
 
 
+def feedthrough_corrections(
+    signals: Signals, structure: Structure, mf: ModulatingFunction, delay_max: float | None = None
+):
+    r"""Corrections of the output columns for inputs with $m_k = n$ (direct feed-through).
+
+    Then $y = D_k u_k(t-\tau_k) + z$ inherits the breaks of $u_k$'s interpolant, which the
+    cubic rule does not see. Applying the cubic rule to $y$ errs by $D_k \Delta_k$ with
+    $\Delta_{k,i}$ = the cubic rule on the samples of $u_k(t_j - \tau_k)$ minus $u_k$'s own
+    exact (zoh/foh, delayed) rule; `identify` subtracts
+    $\hat D_k \Delta_k$ from the $y$ columns and re-solves (a few fixed-point steps).
+
+    **Returns:** list of (k, Delta_k (T, n+1)) for those inputs (empty if none).
+    """
+    n, dt = structure.n, signals.dt
+    length = kernel_length(static_span(signals, mf, delay_max), dt)
+    out = []
+    for k in range(signals.n_inputs):
+        if structure.m[k] != n or signals.smooth[k] or signals.output_rule != "cubic":
+            continue
+        x, tau, mode = signals.u[:, k], signals.delays[k], signals.intersample[k]
+        on_grid = delayed_samples(x, tau, dt, mode)  # what D_k u_k(t - tau_k) puts into y's samples
+        cols = []
+        for i in range(n + 1):
+            scale = mf.h ** (-i)
+            seen = modulate(on_grid, kernel_weights(mf, i, dt, "cubic", 0.0, length) * scale)
+            true = modulate(x, kernel_weights(mf, i, dt, mode, tau, length) * scale)
+            cols.append(seen - true)
+        out.append((k, jnp.stack(cols, axis=1)))
+    return out
+
+
 def gram(ms: ModulatedSignals) -> jax.Array:
     r"""$G = \int c(t) c(t)^T dt$ (eq. 9-10), Gregory rule on the valid samples."""
     C = ms.columns
@@ -103,13 +135,13 @@ def check_record_length(signals: Signals, mf: ModulatingFunction, n_params: int)
     """Boundary check: the record must hold h (+ delays) plus enough valid samples."""
     if isinstance(mf.h, jax.core.Tracer) or isinstance(signals.delays, jax.core.Tracer):
         return
-    span = float(jnp.max(mf.h)) + float(np.max(np.asarray(signals.delays), initial=0.0))
+    span = float(np.max(np.asarray(mf.h))) + float(np.max(np.asarray(signals.delays), initial=0.0))
     first = int(support_samples(span, signals.dt))
     need = max(MIN_VALID, 2 * n_params)
     if signals.n_samples - first < need:
         raise ValueError(
             f"identify(): the record ({signals.duration:g} time units, {signals.n_samples} "
-            f"samples) is too short for h={float(jnp.max(mf.h)):g} plus delays: it leaves "
+            f"samples) is too short for h={float(np.max(np.asarray(mf.h))):g} plus delays: it leaves "
             f"{max(signals.n_samples - first, 0)} valid samples, need {need}; "
             "use a smaller h or a longer record"
         )

@@ -9,13 +9,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._gram import check_record_length, gram, modulated_signals
+from ._gram import check_record_length, feedthrough_corrections, gram, modulated_signals
 from ._model import Model
 from ._modulating import ModulatingFunction
 from ._signals import Signals
 from ._solve import DEAD_COLUMN_RTOL, constrained_solve, solve_status
 from ._status import Status, describe
 from ._structure import Structure
+
+
+FEEDTHROUGH_STEPS = 4  # fixed-point steps of the m_k = n output correction (see _gram)
 
 
 def _concrete(x) -> bool:
@@ -61,12 +64,22 @@ def _identify(signals, structure, mf, eta, delay_max):
     ms = modulated_signals(signals, structure, mf, delay_max)
     G = gram(ms)
     K = signals.n_inputs
+    n = structure.n
     alive = jnp.sqrt(jnp.maximum(jnp.diagonal(G), 0.0)) > DEAD_COLUMN_RTOL * ms.bounds
     theta, cond, reduced = constrained_solve(G, eta, alive)
+    corrections = feedthrough_corrections(signals, structure, mf, delay_max)
+    if corrections:  # m_k = n: remove D_k * Delta_k from the output columns, re-solve
+        starts = np.cumsum([n + 1] + [mk + 1 for mk in structure.m])
+        y_cols = ms.columns[:, : n + 1]
+        for _ in range(FEEDTHROUGH_STEPS):
+            an = jnp.where(theta[n] != 0, theta[n], 1.0)
+            fix = sum(theta[starts[k] + n] / an * delta for k, delta in corrections)
+            ms = eqx.tree_at(lambda m: m.columns, ms, ms.columns.at[:, : n + 1].set(y_cols - fix))
+            G = gram(ms)
+            theta, cond, reduced = constrained_solve(G, eta, alive)
     finite = jnp.isfinite(signals.y).all() & jnp.isfinite(signals.u).all()
     status = solve_status(theta, reduced, finite)
     status = status | jnp.where(jnp.all(ms.excited) & jnp.all(alive), 0, Status.NO_EXCITATION)
-    n = structure.n
     an = theta[n]
     scale_a = jnp.max(jnp.abs(theta[: n + 1]))
     an_ok = jnp.abs(an) > 1e-12 * scale_a

@@ -21,6 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.special as jsp
+import numpy as np
 
 MAX_DEGREE = 20  # N + M bound that the fixed Gauss rule of _quadrature integrates exactly
 
@@ -49,23 +50,22 @@ class ModulatingFunction(eqx.Module):
     def __init__(self, N, M, h, h_max: float | None = None):
         for name, val in (("N", N), ("M", M)):
             if _is_concrete(val):
-                v = float(jnp.asarray(val))
+                v = float(np.max(np.asarray(val)))
                 if not math.isfinite(v) or v < 1:
                     raise ValueError(
                         f"ModulatingFunction(): {name} must be a finite number >= 1 (got {name}={v})"
                     )
         if _is_concrete(N) and _is_concrete(M):
-            if float(jnp.asarray(N)) + float(jnp.asarray(M)) > MAX_DEGREE:
+            if float(np.max(np.asarray(N))) + float(np.max(np.asarray(M))) > MAX_DEGREE:
                 raise ValueError(
                     f"ModulatingFunction(): N + M must be <= {MAX_DEGREE} (got N={N}, M={M}); "
                     "larger exponents add nothing but rounding"
                 )
         self.N = N
         self.M = M
-        self.h = jnp.asarray(h, dtype=jnp.float64)
-        if _is_concrete(self.h):
-            hv = float(self.h) if self.h.ndim == 0 else float(jnp.max(self.h))
-            if not (math.isfinite(hv) and float(jnp.min(self.h)) > 0):
+        if _is_concrete(h):
+            hv = float(np.max(np.asarray(h, dtype=np.float64)))
+            if not (math.isfinite(hv) and float(np.min(np.asarray(h, dtype=np.float64))) > 0):
                 raise ValueError(f"ModulatingFunction(): h must be > 0 and finite (got h={h})")
             if h_max is None:
                 h_max = hv
@@ -73,6 +73,7 @@ class ModulatingFunction(eqx.Module):
                 raise ValueError(
                     f"ModulatingFunction(): h={hv} exceeds h_max={h_max}; raise h_max"
                 )
+        self.h = jnp.asarray(h, dtype=jnp.float64)
         if h_max is not None and not h_max > 0:
             raise ValueError(f"ModulatingFunction(): h_max must be > 0 (got {h_max})")
         self.h_max = None if h_max is None else float(h_max)

@@ -113,3 +113,25 @@ def gregory_weights(n_samples: int, first, dt: float):
 
     w = end_weight(k - first) * end_weight(n_samples - 1 - k)
     return dt * jnp.where(k >= first, w, 0.0)
+
+
+def shift_samples(x, lag):
+    """x[j - lag] for every j, holding x[0] before the start (`lag` may be traced)."""
+    idx = jnp.clip(jnp.arange(x.shape[0]) - lag, 0, x.shape[0] - 1)
+    return x[idx]
+
+
+def split_delay(delay, dt: float):
+    """tau = (d + f) dt with integer d >= 0 and 0 <= f < 1 (traced-friendly)."""
+    steps = jnp.asarray(delay) / dt
+    d = jnp.floor(steps + 1e-12)
+    return d.astype(jnp.int32), jnp.clip(steps - d, 0.0, 1.0)
+
+
+def delayed_samples(x, delay, dt: float, mode: str):
+    r"""Values $\tilde x(t_j - \tau)$ of the zoh/foh interpolant of `x` at the sample times."""
+    d, f = split_delay(delay, dt)
+    prev, cur = shift_samples(x, d + 1), shift_samples(x, d)
+    if mode == "zoh":
+        return jnp.where(f > 0, prev, cur)
+    return f * prev + (1 - f) * cur

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jax.scipy.linalg import expm
 
 from ._model import Model
+from ._quadrature import delayed_samples, shift_samples, split_delay
 from ._statespace import state_space
 from ._status import Status
 
@@ -46,12 +47,6 @@ def _input_terms(A, b, mode: str, frac, dt: float):
     return P, Q, R
 
 
-def _shift(x, lag):
-    """x[j - lag] for every j, holding x[0] before the start (lag may be traced)."""
-    idx = jnp.clip(jnp.arange(x.shape[0]) - lag, 0, x.shape[0] - 1)
-    return x[idx]
-
-
 def _forced(model: Model, u, dt: float):
     """Per-step drive (T, n) and direct term (T,) of all inputs (offset included)."""
     ss = state_space(model)
@@ -67,15 +62,11 @@ def _forced(model: Model, u, dt: float):
     drive = jnp.zeros((T, model.n))
     direct = jnp.zeros(T)
     for k, (x, mode, tau) in enumerate(zip(cols, modes, delays)):
-        steps = tau / dt
-        d = jnp.floor(steps + 1e-12)
-        f = jnp.clip(steps - d, 0.0, 1.0)
-        d = d.astype(jnp.int32)
+        d, f = split_delay(tau, dt)
         P, Q, R = _input_terms(ss.A, ss.B[:, k], mode, f, dt)
-        um1, u0, up1 = _shift(x, d + 1), _shift(x, d), _shift(x, d - 1)
+        um1, u0, up1 = shift_samples(x, d + 1), shift_samples(x, d), shift_samples(x, d - 1)
         drive = drive + um1[:, None] * P + u0[:, None] * Q + up1[:, None] * R
-        at_sample = jnp.where(f > 0, um1, u0) if mode == "zoh" else f * um1 + (1 - f) * u0
-        direct = direct + ss.D[0, k] * at_sample
+        direct = direct + ss.D[0, k] * delayed_samples(x, tau, dt, mode)
     return ss, drive, direct
 
 

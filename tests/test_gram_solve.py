@@ -1,0 +1,86 @@
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import reference as R
+
+import mfmjax
+from mfmjax import ModulatingFunction, Signals, Structure
+from mfmjax._gram import gram, modulated_signals
+from mfmjax.datasets import simulated_experiment, third_order_two_input
+
+
+def _small_record(noise=0.0, delays=(0.0, 0.0)):
+    true = mfmjax.Model.from_coefficients(
+        [1.0, 3.5, 3.5, 1.0], [[1.0, 0.5], [0.8]], intersample=("foh", "zoh"), delays=delays
+    )
+    return simulated_experiment(true, dt=0.1, n_samples=150, noise_std=noise, seed=3)
+
+
+def test_gram_equals_reference():
+    # delays and h not multiples of dt; the reference kernels are exact rationals, so G may
+    # differ only by float64 rounding in the convolution and the sums: 1e-12 relative
+    sig = _small_record(delays=(0.33, 0.05))
+    st, mf = Structure(3, (1, 0)), ModulatingFunction(3, 4, 2.17)
+    G = np.asarray(gram(modulated_signals(sig, st, mf)))
+    Gr = R.gram(np.asarray(sig.y), np.asarray(sig.u), 0.1, 3, (1, 0), 3, 4, 2.17,
+                ("foh", "zoh"), (0.33, 0.05))
+    assert np.max(np.abs(G - Gr)) <= 1e-12 * np.max(np.abs(Gr))
+
+
+def test_closed_form_agrees_with_kkt_when_well_conditioned():
+    # noisy data make G well conditioned; both solve the same problem, so they agree to the
+    # rounding amplified by cond(G_eq) < 1e6: 1e-8 relative
+    sig = _small_record(noise=0.05)
+    st, mf = Structure(3, (1, 0)), ModulatingFunction(4, 5, 2.0)
+    G = gram(modulated_signals(sig, st, mf))
+    eta = jnp.ones(G.shape[0])
+    theta, cond, _ = mfmjax.constrained_solve(G, eta, jnp.ones(G.shape[0], bool))
+    assert float(cond) < 1e6
+    ref = R.closed_form(np.asarray(G), np.ones(G.shape[0]))
+    assert np.max(np.abs(np.asarray(theta) - ref)) <= 1e-8 * np.max(np.abs(ref))
+    jax_ref = np.asarray(mfmjax.closed_form(G, eta))
+    assert np.max(np.abs(jax_ref - ref)) <= 1e-8 * np.max(np.abs(ref))
+    # a non-default eta too
+    eta2 = jnp.linspace(0.5, 2.0, G.shape[0])
+    theta2, _, _ = mfmjax.constrained_solve(G, eta2, jnp.ones(G.shape[0], bool))
+    ref2 = R.closed_form(np.asarray(G), np.asarray(eta2))
+    assert np.max(np.abs(np.asarray(theta2) - ref2)) <= 1e-8 * np.max(np.abs(ref2))
+
+
+def test_kkt_defined_for_exactly_singular_gram():
+    # rank-deficient G with null vector v: the closed form divides by ~0, the KKT solve returns
+    # v scaled to eta^T theta = 1 exactly
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(50, 4))
+    v = np.array([1.0, -2.0, 0.5, 3.0])
+    X -= np.outer(X @ v, v) / (v @ v)
+    G = jnp.asarray(X.T @ X)
+    theta, cond, reduced = mfmjax.constrained_solve(G, jnp.ones(4), jnp.ones(4, bool))
+    assert np.allclose(np.asarray(theta), v / v.sum(), rtol=1e-10, atol=0)
+    assert float(cond) > 1e14 and float(reduced) < 1e3
+
+
+def test_masked_column_gets_zero():
+    rng = np.random.default_rng(1)
+    X = rng.normal(size=(30, 3))
+    G = jnp.asarray(X.T @ X)
+    active = jnp.asarray([True, False, True])
+    theta, _, _ = mfmjax.constrained_solve(G, jnp.ones(3), active)
+    sub = R.closed_form(np.asarray(G)[np.ix_([0, 2], [0, 2])], np.ones(2))
+    assert float(theta[1]) == 0.0
+    assert np.allclose(np.asarray(theta)[[0, 2]], sub, rtol=1e-12)
+
+
+def test_constant_input_flagged_not_nan():
+    sig0 = simulated_experiment(third_order_two_input(), dt=0.01, n_samples=1500)
+    for level in (0.0, 2.5):
+        u = np.asarray(sig0.u).copy()
+        u[:, 1] = level
+        sig = Signals(sig0.y, u, dt=0.01, intersample=("foh", "zoh"))
+        with warnings.catch_warnings(record=True) as rec:
+            warnings.simplefilter("always")
+            model = mfmjax.identify(sig, Structure(3, (1, 1)), ModulatingFunction(4, 5, 2.0))
+        assert int(model.status) & mfmjax.Status.NO_EXCITATION
+        assert np.all(np.isfinite(np.asarray(model.theta)))
+        assert any("no_excitation" in str(w.message) for w in rec)

@@ -1,0 +1,93 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import reference as R
+from scipy.integrate import quad
+
+from mfmjax import ModulatingFunction
+from mfmjax._quadrature import gregory_weights, kernel_length, kernel_weights
+
+CASES = [  # N, M, h, dt, delay: fractional h and delay on purpose
+    (3, 4, 2.03, 0.1, 0.35),
+    (4, 5, 1.0, 0.1, 0.0),
+    (2, 2, 0.55, 0.1, 0.07),
+    (6, 5, 1.9, 0.1, 0.0),
+]
+
+
+@pytest.mark.parametrize("rule", ["zoh", "foh", "cubic"])
+@pytest.mark.parametrize("N,M,h,dt,tau", CASES)
+def test_weights_equal_exact_reference(rule, N, M, h, dt, tau):
+    # the reference is exact rational arithmetic: the only error is float64 rounding, 1e-12
+    L = kernel_length(h + tau, dt)
+    for i in range(3):
+        got = np.asarray(kernel_weights(ModulatingFunction(N, M, h), i, dt, rule, tau, L))
+        ref = R.kernel_weights(N, M, h, i, dt, rule, tau, L)
+        assert np.max(np.abs(got - ref)) <= 1e-12 * np.max(np.abs(ref))
+
+
+def _error(rule, dt, i=1, h=2.03, tau=0.35):
+    mf = ModulatingFunction(3, 4, h)
+    L = kernel_length(h + tau, dt)
+    w = np.asarray(kernel_weights(mf, i, dt, rule, tau, L))
+    s = np.arange(L) * dt
+    ex = quad(lambda v: np.sin(v) * R.phi(v - tau, 3, 4, h, i) / h ** (3 + 4 - i + 1), tau,
+              tau + h, epsabs=1e-15, epsrel=1e-14)[0]
+    return abs(w @ np.sin(s) - ex)
+
+
+def test_convergence_orders():
+    # on a smooth signal the cubic rule is O(dt^4) (ratio 16 per halving), foh O(dt^2) (4);
+    # observed ratios must be within 20% of those
+    for rule, order in (("foh", 2), ("cubic", 4)):
+        e1, e2 = _error(rule, 0.05), _error(rule, 0.025)
+        assert 0.8 * 2**order <= e1 / e2 <= 1.25 * 2**order, (rule, e1 / e2)
+    assert _error("cubic", 0.05) < 1e-3 * _error("foh", 0.05)
+
+
+def test_zero_beyond_support_and_constant_integral():
+    mf = ModulatingFunction(3, 4, 1.23)
+    L = kernel_length(3.0, 0.1)
+    for rule in ("zoh", "foh", "cubic"):
+        w = np.asarray(kernel_weights(mf, 0, 0.1, rule, 0.4, L))
+        assert np.all(w[int(np.ceil((1.23 + 0.4) / 0.1)) + 1 :] == 0.0)
+        # all rules integrate a constant exactly: sum w = B(N+1, M+1)
+        assert abs(w.sum() - 1 / 280) <= 1e-15
+        w1 = np.asarray(kernel_weights(mf, 1, 0.1, rule, 0.4, L))
+        assert abs(w1.sum()) <= 1e-15
+
+
+def test_jit_vmap_grad_in_h_and_delay():
+    L = kernel_length(2.5, 0.1)
+
+    def f(h, tau):
+        return kernel_weights(ModulatingFunction(3, 4, h, h_max=2.0), 1, 0.1, "cubic", tau, L)
+
+    hs = jnp.asarray([1.0, 1.37, 1.9])
+    eager = np.stack([np.asarray(f(h, 0.2)) for h in hs])
+    assert np.array_equal(np.asarray(jax.vmap(lambda h: f(h, 0.2))(hs)), eager)
+    assert np.allclose(np.asarray(jax.jit(f)(1.37, 0.2)), eager[1], rtol=0, atol=1e-15)
+    x = np.cos(np.arange(L) * 0.1)
+
+    def g(h, tau):
+        return f(h, tau) @ x
+
+    # (tau + h)/dt = 15.8 stays inside one stencil choice of the cubic rule under +-eps
+    for argnum in (0, 1):
+        args = [1.37, 0.21]
+        grad = jax.grad(g, argnums=argnum)(*args)
+        eps = 1e-6
+        hi, lo = list(args), list(args)
+        hi[argnum] += eps
+        lo[argnum] -= eps
+        fd = (g(*hi) - g(*lo)) / (2 * eps)
+        assert abs(grad - fd) <= 1e-6 * abs(fd) + 1e-12
+
+
+def test_gregory_weights():
+    q = np.asarray(gregory_weights(20, 5, 0.5))
+    assert np.array_equal(q, R.gregory(20, 5, 0.5))
+    t = np.arange(20) * 0.5
+    # exact for cubics on the valid part [2.5, 9.5]
+    assert abs(q @ t**3 - (9.5**4 - 2.5**4) / 4) <= 1e-12 * 9.5**4
