@@ -1,0 +1,100 @@
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from conftest import SHARED
+
+from mfmjax._cli import main
+from mfmjax.datasets import simulated_experiment, third_order_two_input
+
+
+@pytest.fixture(scope="module")
+def csv_file(tmp_path_factory):
+    sig = simulated_experiment(third_order_two_input(), dt=0.01, n_samples=2000)
+    p = tmp_path_factory.mktemp("cli") / "rec.csv"
+    y, u = np.asarray(sig.y), np.asarray(sig.u)
+    with open(p, "w") as fh:
+        fh.write("t,temp,u1,u2\n")
+        for k in range(len(y)):
+            fh.write(f"{0.01 * k!r},{float(y[k])!r},{float(u[k, 0])!r},{float(u[k, 1])!r}\n")
+    return p
+
+
+ARGS = ["--output", "temp", "--inputs", "u1,u2", "--n", "3", "--m", "1,0", "--N", "4",
+        "--M", "5", "--h", "2.0", "--time", "t", "--intersample", "foh,zoh"]
+
+
+def test_identify_json(csv_file, capsys):
+    assert main(["identify", str(csv_file), *ARGS, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for key in ("a", "b", "n", "m", "N", "M", "h", "J"):
+        assert key in out
+    assert out["n"] == 3 and out["m"] == [1, 0] and out["a"][-1] == 1.0
+    true = [1.0, 3.5, 3.5, 1.0]
+    assert np.allclose(out["a"], true, rtol=5e-5)
+    assert np.allclose(out["b"][0], [1.0, 0.5], rtol=5e-5)
+
+
+def test_identify_table(csv_file, capsys):
+    assert main(["identify", str(csv_file), *ARGS]) == 0
+    out = capsys.readouterr().out
+    assert "a_0" in out and "b_11" in out and "cond(G_eq)" in out
+
+
+@pytest.mark.parametrize(
+    "extra,match",
+    [
+        (["--inputs", "u1,nope"], "unknown column 'nope'"),
+        (["--N", "2"], "N must be >= n"),
+        (["--m", "4,0"], "exceeds n=3"),
+        (["--m", "1,0,0"], "m has 3 entries"),
+        (["--h", "-1"], "h must be > 0"),
+        (["--h", "19.95"], "too short"),
+        (["--delays", "0,-1"], "delays must be"),
+        (["--intersample", "foh,cubic"], "unknown intersample mode"),
+        (["--delays", "0,x"], "--delays: expected comma-separated numbers"),
+    ],
+)
+def test_identify_user_errors(csv_file, capsys, extra, match):
+    args = list(ARGS)
+    for k in range(0, len(extra), 2):
+        if extra[k] in args:
+            i = args.index(extra[k])
+            args[i + 1] = extra[k + 1]
+        else:
+            args += extra[k : k + 2]
+    assert main(["identify", str(csv_file), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert match in err and len(err.splitlines()) == 1
+
+
+def test_cli_process_one_line_exit_2(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "mfmjax._cli", "identify", str(tmp_path / "x.csv"),
+                        "--output", "y", "--n", "2", "--N", "3", "--M", "3", "--h", "1",
+                        "--dt", "1"], capture_output=True, text=True)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "mfmjax._cli", "identify", "--bogus"],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_demo_runs(capsys):
+    assert main(["demo"]) == 0
+    out = capsys.readouterr().out
+    assert "b_20" in out and "rel. error" in out
+
+
+@pytest.mark.skipif(not os.path.isdir(os.path.join(SHARED, "daisy-heat-exchanger")),
+                    reason="shared data not present")
+def test_real_heat_exchanger(capsys):
+    path = os.path.join(SHARED, "daisy-heat-exchanger", "exchanger.dat")
+    assert main(["identify", path, "--names", "t,q,theta", "--time", "t", "--output", "theta",
+                 "--inputs", "q", "--n", "1", "--m", "0", "--N", "3", "--M", "4", "--h", "40",
+                 "--offset", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    # first-order local model: stable, negative gain (more flow -> lower outlet temperature)
+    assert out["status"] == "ok" and out["a"][0] > 0 and out["b"][0][0] < 0

@@ -1,0 +1,103 @@
+import numpy as np
+import pytest
+
+from mfmjax import Signals
+
+
+def _ok(T=50):
+    t = np.arange(T) * 0.1
+    return np.sin(t), np.stack([np.cos(t), t], axis=1)
+
+
+def test_from_arrays_and_time_column():
+    y, u = _ok()
+    s = Signals(y, u, t=1.0 + 0.1 * np.arange(50), intersample=("zoh", "foh"), delays=[0.25, 0])
+    assert s.dt == pytest.approx(0.1) and s.t0 == 1.0 and s.n_inputs == 2
+    assert s.intersample == ("zoh", "foh") and s.y.dtype == np.float64
+    assert Signals(y, u[:, 0], dt=0.1).n_inputs == 1
+    assert Signals(y, dt=0.1).n_inputs == 0
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(u_bad="nan"), "NaN or inf sample at row 7"),
+        (dict(u_bad="inf"), "NaN or inf sample at row 7"),
+        (dict(t=np.r_[0.0, 0.2, 0.1, np.arange(3, 50) * 0.1]), "strictly increasing"),
+        (dict(t=np.r_[np.arange(25) * 0.1, 2.5 + np.arange(25) * 0.11]), "not uniformly"),
+        (dict(u_len=49), "length mismatch"),
+        (dict(intersample=("zoh", "spline")), "unknown intersample mode 'spline'"),
+        (dict(delays=[-1.0, 0.0]), "delays must be finite and >= 0"),
+        (dict(delays=[10.0, 0.0]), "not shorter than the record"),
+        (dict(delays=[1.0]), "one entry per input"),
+        (dict(dt=0.0), "dt must be > 0"),
+        (dict(dt=None), "give the sampling interval"),
+        (dict(t=np.arange(50) * 0.1, dt=0.1), "either t"),
+        (dict(output_rule="quintic"), "unknown output_rule"),
+    ],
+)
+def test_bad_signals(kwargs, match):
+    y, u = _ok()
+    bad = kwargs.pop("u_bad", None)
+    if bad:
+        u[7, 1] = float(bad)
+    if "u_len" in kwargs:
+        u = u[: kwargs.pop("u_len")]
+    if "t" not in kwargs and "dt" not in kwargs:
+        kwargs["dt"] = 0.1
+    with pytest.raises(ValueError, match=match):
+        Signals(y, u, **kwargs)
+
+
+def _write(tmp_path, text):
+    p = tmp_path / "data.csv"
+    p.write_text(text)
+    return p
+
+
+def test_from_csv(tmp_path):
+    y, u = _ok()
+    rows = "\n".join(f"{0.1 * k:.10g},{float(y[k])!r},{float(u[k, 0])!r},{float(u[k, 1])!r}" for k in range(50))
+    p = _write(tmp_path, "time,temp,q,p\n" + rows + "\n")
+    s = Signals.from_csv(p, output="temp", inputs=["q", "p"], time="time")
+    assert np.array_equal(np.asarray(s.y), y) and s.input_names == ("q", "p")
+    with pytest.raises(ValueError, match="unknown column 'x' for inputs"):
+        Signals.from_csv(p, output="temp", inputs=["x"], time="time")
+    with pytest.raises(ValueError, match="time column"):
+        Signals.from_csv(p, output="temp", inputs=["q"])
+    # headerless whitespace file with names
+    p2 = tmp_path / "data.dat"
+    p2.write_text("\n".join(f"{k}  {float(u[k, 0])!r}  {float(y[k])!r}" for k in range(50)))
+    s2 = Signals.from_csv(p2, output="y", inputs=["u"], time="k", names=["k", "u", "y"])
+    assert s2.dt == 1.0 and np.array_equal(np.asarray(s2.y), y)
+
+
+@pytest.mark.parametrize(
+    "text,match",
+    [
+        ("", "empty"),
+        ("a,b\n", "no data rows"),
+        ("a,b\n1,2\n3\n", "line 3 has 1 fields"),
+        ("a,b\n1,2\n3,x\n", "line 3 has a non-numeric value"),
+        ("a,a\n1,2\n", "duplicate column"),
+    ],
+)
+def test_bad_csv(tmp_path, text, match):
+    with pytest.raises(ValueError, match=match):
+        Signals.from_csv(_write(tmp_path, text), output="a", inputs=["b"], dt=1.0)
+
+
+def test_missing_cell_is_reported_as_nan(tmp_path):
+    p = _write(tmp_path, "a,b\n1,2\n3,\n4,5\n")
+    with pytest.raises(ValueError, match="'b' has a NaN or inf sample at row 1"):
+        Signals.from_csv(p, output="a", inputs=["b"], dt=1.0)
+
+
+def test_from_dataframe():
+    pd = pytest.importorskip("pandas")
+    y, u = _ok()
+    df = pd.DataFrame({"t": np.arange(50) * 0.5, "y": y, "u1": u[:, 0]})
+    s = Signals.from_dataframe(df, output="y", inputs=["u1"], time="t", intersample="zoh")
+    assert s.dt == 0.5 and s.intersample == ("zoh",)
+    with pytest.raises(ValueError, match="unknown column 'u9'"):
+        Signals.from_dataframe(df, output="y", inputs=["u9"], time="t")
