@@ -17,6 +17,15 @@ from ._modulating import phi as phi  # noqa: E402
 from ._modulating import phi_integral as phi_integral  # noqa: E402
 from ._modulating import phi_scaled as phi_scaled  # noqa: E402
 from ._quadrature import kernel_weights as kernel_weights  # noqa: E402
+from ._observers import Observation as Observation  # noqa: E402
+from ._observers import final_state as final_state  # noqa: E402
+from ._observers import fit_percent as fit_percent  # noqa: E402
+from ._observers import initial_state as initial_state  # noqa: E402
+from ._observers import moving_final_states as moving_final_states  # noqa: E402
+from ._observers import observe as observe  # noqa: E402
+from ._observers import performance_index as performance_index  # noqa: E402
+from ._persist import load_model as load_model  # noqa: E402
+from ._persist import save_model as save_model  # noqa: E402
 from ._signals import Signals as Signals  # noqa: E402
 from ._simulate import simulate as simulate  # noqa: E402
 from ._statespace import StateSpace as StateSpace  # noqa: E402

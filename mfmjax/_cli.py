@@ -109,6 +109,53 @@ def _cmd_demo(args):
     print(f"\nJ = {float(model.J):.3e}   cond(equilibrated G) = {float(model.cond):.2e}")
 
 
+def _cmd_validate(args):
+    import mfmjax
+
+    model = mfmjax.load_model(args.model)
+    sig = _load_signals(args)
+    window = tuple(_floats(args.window, "window")) if args.window else None
+    if window is not None and len(window) != 2:
+        raise _UserError("--window: expected T0,T1")
+    obs = mfmjax.observe(model, sig, window)
+    k0 = 0 if window is None else round((window[0] - sig.t0) / sig.dt)
+    y = np.asarray(sig.y)[k0 : k0 + obs.y_sim.shape[0]]
+    fit = float(mfmjax.fit_percent(y, obs.y_sim))
+    res = {"E": float(obs.E), "fit": fit, "x0": [float(v) for v in np.asarray(obs.x_initial)],
+           "x_final": [float(v) for v in np.asarray(obs.x_final)],
+           "window": [sig.t0 + k0 * sig.dt, sig.t0 + (k0 + len(y) - 1) * sig.dt]}
+    if args.plot:
+        _plot_validation(sig, k0, y, np.asarray(obs.y_sim), fit, args.plot)
+        res["plot"] = args.plot
+    if args.json:
+        print(json.dumps(res))
+    else:
+        print(f"window        {res['window'][0]:g} .. {res['window'][1]:g}")
+        print(f"E (eq. 17)    {res['E']:.6e}")
+        print(f"fit           {fit:.2f} %")
+        print("x0            " + " ".join(f"{v:.6e}" for v in res["x0"]))
+
+
+def _plot_validation(sig, k0, y, y_sim, fit, path):
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise _UserError("--plot needs matplotlib: pip install 'mfmjax[plot]'") from None
+    t = sig.t0 + sig.dt * (k0 + np.arange(len(y)))
+    fig, ax = plt.subplots(figsize=(8, 3.5), dpi=100)
+    ax.plot(t, y, lw=1.2, label=f"measured {sig.output_name}")
+    ax.plot(t, y_sim, lw=1.0, ls="--", label=f"simulated (fit {fit:.1f} %)")
+    ax.set_xlabel("time")
+    ax.set_ylabel(sig.output_name)
+    ax.legend(loc="best")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     parser = _Parser(prog="mfmjax", description="Modulating Function Method identification")
     sub = parser.add_subparsers(dest="command", parser_class=_Parser)
@@ -122,13 +169,20 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--save", help="write the model to this JSON file")
     p.set_defaults(func=_cmd_identify)
+    p = sub.add_parser("validate", help="E, fit % and observed x0 of a saved model on a record")
+    _add_data_args(p)
+    p.add_argument("--model", required=True, help="model JSON written by identify --save")
+    p.add_argument("--window", help="T0,T1 (default: the whole record)")
+    p.add_argument("--plot", help="write measured vs simulated output to this PNG")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_cmd_validate)
     p = sub.add_parser("demo", help="run the built-in demonstration")
     p.add_argument("--out", help="directory for result files")
     p.set_defaults(func=_cmd_demo)
     try:
         args = parser.parse_args(argv)
         if args.command is None:
-            raise _UserError("mfmjax: give a command: identify, demo (see mfmjax --help)")
+            raise _UserError("mfmjax: give a command: identify, validate, demo (see --help)")
         for name in ("N", "M"):
             val = getattr(args, name, None)
             if val is not None and val == int(val):

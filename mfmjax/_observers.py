@@ -25,6 +25,7 @@ from ._signals import Signals
 from ._simulate import _forced
 from ._status import Status
 
+MIN_WINDOW = 8  # fewest samples in an observer window (Gregory rule needs 6)
 UNOBSERVABLE_COND = 1e13  # cond of the equilibrated Gramian above this: flagged
 
 
@@ -39,11 +40,14 @@ class Observation(eqx.Module):
     status: jax.Array
 
 
-def observe_window(model: Model, y, u, dt: float, start, length: int) -> Observation:
+def observe_window(
+    model: Model, y, u, dt: float, start, length: int, ob_length: int | None = None
+) -> Observation:
     """Observers + E on samples `start .. start+length-1` of a record (y (T,), u (T, K)).
 
     `length` is static, `start` may be traced (moving windows, eq. 16). Inputs before `start`
-    are taken from the record (delays see the real history).
+    are taken from the record (delays see the real history). The initial-state observer uses the
+    first `ob_length` samples (default all); the simulation and E cover the whole window.
     """
     ss, drive, direct = _forced(model, u, dt)
     n = model.n
@@ -59,8 +63,10 @@ def observe_window(model: Model, y, u, dt: float, start, length: int) -> Observa
     _, (y_f, rows) = jax.lax.scan(step, (jnp.zeros(n), ss.C[0]), dr)
     y_forced = y_f + di
     q = gregory_weights(length, 0, dt)
-    M0 = rows.T @ (q[:, None] * rows)  # observability Gramian over the window
-    rhs = rows.T @ (q * (yw - y_forced))
+    ob = length if ob_length is None else ob_length
+    q_ob = jnp.zeros(length).at[:ob].set(gregory_weights(ob, 0, dt))
+    M0 = rows.T @ (q_ob[:, None] * rows)  # observability Gramian over the observer window
+    rhs = rows.T @ (q_ob * (yw - y_forced))
     d = 1.0 / jnp.sqrt(jnp.where(jnp.diagonal(M0) > 0, jnp.diagonal(M0), 1.0))
     Me = d[:, None] * M0 * d[None, :]
     x0 = d * jnp.linalg.solve(Me, d * rhs)
@@ -75,5 +81,122 @@ def observe_window(model: Model, y, u, dt: float, start, length: int) -> Observa
     E = jnp.sum(q * (yw - y_sim) ** 2)
     x_final = xs[-1]
     status = jnp.where(cond > UNOBSERVABLE_COND, Status.UNOBSERVABLE, 0)
-    status = status | jnp.where(jnp.all(jnp.isfinite(x0)) & jnp.isfinite(E), 0, Status.NONFINITE)
+    finite = jnp.all(jnp.isfinite(x0)) & jnp.isfinite(E) & jnp.all(jnp.isfinite(rows))
+    status = status | jnp.where(finite, 0, Status.OVERFLOW)
     return Observation(x0, x_final, y_sim, E, cond, status.astype(jnp.int32))
+
+
+# -- public boundary -------------------------------------------------------------------------
+
+
+def _window(model: Model, signals: Signals, window, fn: str):
+    if not isinstance(model, Model) or not isinstance(signals, Signals):
+        raise TypeError(f"{fn}(): expected (Model, Signals)")
+    if model.n_inputs != signals.n_inputs:
+        raise ValueError(
+            f"{fn}(): the model has {model.n_inputs} inputs but the signals have "
+            f"{signals.n_inputs}; pass the inputs the model was identified with"
+        )
+    T, dt, t0 = signals.n_samples, signals.dt, signals.t0
+    if window is None:
+        k0, k1 = 0, T - 1
+    else:
+        w0, w1 = (float(v) for v in window)
+        k0, k1 = round((w0 - t0) / dt), round((w1 - t0) / dt)
+        if k0 < 0 or k1 > T - 1 or k1 <= k0:
+            raise ValueError(
+                f"{fn}(): window ({w0:g}, {w1:g}) must lie inside the record "
+                f"[{t0:g}, {t0 + (T - 1) * dt:g}] with start < end"
+            )
+    need = max(MIN_WINDOW, 2 * model.n)
+    if k1 - k0 + 1 < need:
+        raise ValueError(
+            f"{fn}(): the window holds {k1 - k0 + 1} samples, need at least {need} for an "
+            f"order-{model.n} observer; widen the window"
+        )
+    return k0, k1 - k0 + 1
+
+
+def _checked(obs: Observation, fn: str) -> Observation:
+    if not isinstance(obs.status, jax.core.Tracer):
+        st = int(obs.status)
+        if st & Status.OVERFLOW:
+            raise ValueError(
+                f"{fn}(): the model's response overflows float64 on this window (unstable "
+                "model); shorten the window"
+            )
+        if st & Status.UNOBSERVABLE:
+            raise ValueError(
+                f"{fn}(): the state is not observable on this window (cond(M0) = "
+                f"{float(obs.cond):.1e}); widen the window or check the model"
+            )
+        return obs
+    return eqx.error_if(obs, obs.status != 0, f"{fn}(): unobservable window or overflow")
+
+
+def observe(model: Model, signals: Signals, window=None, *, observer_window: float | None = None):
+    r"""Initial state (eq. 14), final state (eq. 15), simulated output and E (eq. 17) on a window.
+
+    **Arguments:** `window` = (t_start, t_end) in the time units of `signals` (default: the whole
+    record); `observer_window`: length $T_{OB}$ of the initial-state observer from the window
+    start (default: the whole window). The model's delays and intersample modes are used.
+
+    **Returns:** an `Observation` (`x_initial`, `x_final`, `y_sim`, `E`, `cond`, `status`).
+    Raises a clear error for unobservable windows and overflowing (unstable) responses.
+    """
+    start, length = _window(model, signals, window, "observe")
+    ob = None
+    if observer_window is not None:
+        ob = round(float(observer_window) / signals.dt) + 1
+        if not MIN_WINDOW <= ob <= length:
+            raise ValueError(
+                f"observe(): observer_window={observer_window:g} must hold {MIN_WINDOW} to "
+                f"{length} samples of the window"
+            )
+    obs = _observe(model, signals.y, signals.u, signals.dt, start, length, ob)
+    return _checked(obs, "observe")
+
+
+_observe = eqx.filter_jit(observe_window)
+
+
+def initial_state(model: Model, signals: Signals, window=None):
+    """State at the window start from the window's y and u samples (eq. 14, corrected sign)."""
+    return observe(model, signals, window).x_initial
+
+
+def final_state(model: Model, signals: Signals, window=None):
+    """State at the window end from the window's y and u samples (eq. 15)."""
+    return observe(model, signals, window).x_final
+
+
+def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
+    r"""Eq. (16): $x(t_j)$ from the last $T_{OB}$ of data before each $t_j$ in `times`.
+
+    All windows have the same length, so this is one vmapped computation.
+    """
+    length = round(float(T_ob) / signals.dt) + 1
+    times = jnp.atleast_1d(jnp.asarray(times, dtype=jnp.float64))
+    ends = jnp.round((times - signals.t0) / signals.dt).astype(jnp.int32)
+    e_np = [int(v) for v in ends]
+    if min(e_np) - (length - 1) < 0 or max(e_np) > signals.n_samples - 1:
+        raise ValueError(
+            "moving_final_states(): every t_j must have T_ob of data before it inside the record"
+        )
+    _window(model, signals, (signals.t0, signals.t0 + (length - 1) * signals.dt),
+            "moving_final_states")
+    obs = jax.vmap(
+        lambda e: _observe(model, signals.y, signals.u, signals.dt, e - (length - 1), length, None)
+    )(ends)
+    return obs.x_final
+
+
+def performance_index(model: Model, signals: Signals, window=None, *, observer_window=None):
+    r"""E of eq. (17): $\int (y - y_{sim})^2 dt$ on the window, $y_{sim}$ from the observed $x_0$."""
+    return observe(model, signals, window, observer_window=observer_window).E
+
+
+def fit_percent(y, y_sim):
+    """NRMSE fit as MATLAB's `compare`: 100 (1 - ||y - y_sim|| / ||y - mean(y)||)."""
+    y, y_sim = jnp.asarray(y), jnp.asarray(y_sim)
+    return 100.0 * (1.0 - jnp.linalg.norm(y - y_sim) / jnp.linalg.norm(y - jnp.mean(y)))
