@@ -190,3 +190,26 @@ def lsim(a, b, u, dt, modes, x0=None):
 
 def expm(M):
     return linalg.expm(M)
+
+
+def initial_state_paper(a, b, t, y, u, sign):
+    """Eq. (14) literally: x0 = int Gb1 y + int Gb2 u on a fine grid (trapezoid), SISO or MISO.
+
+    Gb2(t) = sign * M0^{-1} [int_t^T W(s) ds] e^{-At} B; the paper prints sign = +1, the correct
+    one is -1 (method.md section 6).
+    """
+    from scipy.integrate import cumulative_trapezoid, trapezoid
+
+    A, B, C, _ = state_space(a, b)
+    E = np.stack([linalg.expm(A * tk) for tk in t])  # e^{A t}
+    W = np.einsum("kji,jl,klm->kim", E, C.T @ C, E)  # e^{A't} C'C e^{At}
+    M0 = trapezoid(W, t, axis=0)
+    cum = cumulative_trapezoid(W, t, axis=0, initial=0.0)
+    tail = M0[None] - cum  # int_t^T W(s) ds
+    Einv = np.stack([linalg.expm(-A * tk) for tk in t])
+    Minv = np.linalg.inv(M0)
+    g1 = np.einsum("ij,kjl->kil", Minv, np.einsum("kji,jl->kil", E, C.T))[:, :, 0]
+    g2 = sign * np.einsum("ij,kjl,klm,mn->kin", Minv, tail, Einv, B)
+    return trapezoid(g1 * y[:, None], t, axis=0) + trapezoid(
+        np.einsum("kin,kn->ki", g2, u.reshape(len(t), -1)), t, axis=0
+    )

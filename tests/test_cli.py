@@ -98,3 +98,52 @@ def test_real_heat_exchanger(capsys):
     out = json.loads(capsys.readouterr().out)
     # first-order local model: stable, negative gain (more flow -> lower outlet temperature)
     assert out["status"] == "ok" and out["a"][0] > 0 and out["b"][0][0] < 0
+
+
+def test_identify_save_and_validate(csv_file, tmp_path, capsys):
+    model_path = tmp_path / "model.json"
+    assert main(["identify", str(csv_file), *ARGS, "--save", str(model_path)]) == 0
+    capsys.readouterr()
+    png = tmp_path / "v.png"
+    assert main(["validate", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time",
+                 "t", "--model", str(model_path), "--window", "2,18", "--plot", str(png),
+                 "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["fit"] > 99.99 and res["E"] >= 0 and len(res["x0"]) == 3
+    assert res["window"] == [2.0, 18.0]
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(png)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and img.shape[:2] == (350, 800)
+    # the measured and simulated curves were drawn: many non-white pixels
+    assert np.mean(img[..., :3] < 0.9) > 0.01
+    assert main(["validate", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time",
+                 "t", "--model", str(model_path)]) == 0
+    assert "fit" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "extra,content,match",
+    [
+        (["--window", "0,50"], None, "must lie inside the record"),
+        (["--window", "1,2,3"], None, "--window: expected T0,T1"),
+        ([], '{"format": "other"}', "not an mfmjax model file"),
+        ([], '{"format": "mfmjax-model", "version": 2}', "version 2"),
+        (["--inputs", "u1"], None, "model has 2 inputs"),
+    ],
+)
+def test_validate_user_errors(csv_file, tmp_path, capsys, extra, content, match):
+    model_path = tmp_path / "model.json"
+    if content is None:
+        assert main(["identify", str(csv_file), *ARGS, "--save", str(model_path)]) == 0
+    else:
+        model_path.write_text(content)
+    capsys.readouterr()
+    args = ["validate", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
+            "--model", str(model_path)]
+    if extra[:1] == ["--inputs"]:
+        args[args.index("--inputs") + 1] = extra[1]
+        extra = []
+    assert main(args + extra) == 2
+    err = capsys.readouterr().err.strip()
+    assert match in err and len(err.splitlines()) == 1
