@@ -16,7 +16,6 @@ from ._modulating import ModulatingFunction as ModulatingFunction  # noqa: E402
 from ._modulating import phi as phi  # noqa: E402
 from ._modulating import phi_integral as phi_integral  # noqa: E402
 from ._modulating import phi_scaled as phi_scaled  # noqa: E402
-from ._quadrature import kernel_weights as kernel_weights  # noqa: E402
 from ._observers import Observation as Observation  # noqa: E402
 from ._observers import final_state as final_state  # noqa: E402
 from ._observers import fit_percent as fit_percent  # noqa: E402
@@ -26,14 +25,15 @@ from ._observers import observe as observe  # noqa: E402
 from ._observers import performance_index as performance_index  # noqa: E402
 from ._persist import load_model as load_model  # noqa: E402
 from ._persist import save_model as save_model  # noqa: E402
+from ._quadrature import kernel_weights as kernel_weights  # noqa: E402
 from ._signals import Signals as Signals  # noqa: E402
 from ._simulate import simulate as simulate  # noqa: E402
+from ._solve import closed_form as closed_form  # noqa: E402
+from ._solve import constrained_solve as constrained_solve  # noqa: E402
 from ._statespace import StateSpace as StateSpace  # noqa: E402
 from ._statespace import state_space as state_space  # noqa: E402
 from ._statespace import to_control as to_control  # noqa: E402
 from ._statespace import to_scipy as to_scipy  # noqa: E402
-from ._solve import closed_form as closed_form  # noqa: E402
-from ._solve import constrained_solve as constrained_solve  # noqa: E402
 from ._status import Status as Status  # noqa: E402
 from ._structure import Structure as Structure  # noqa: E402
 

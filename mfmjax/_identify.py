@@ -17,7 +17,6 @@ from ._solve import DEAD_COLUMN_RTOL, constrained_solve, solve_status
 from ._status import Status, describe
 from ._structure import Structure
 
-
 FEEDTHROUGH_STEPS = 4  # fixed-point steps of the m_k = n output correction (see _gram)
 
 
