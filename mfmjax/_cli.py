@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 
 import numpy as np
 
@@ -75,8 +76,6 @@ def _cmd_identify(args):
     m = _ints(args.m, "m") if args.m else [0] * sig.n_inputs
     structure = mfmjax.Structure(args.n, m).for_inputs(sig.n_inputs)
     mf = mfmjax.ModulatingFunction(args.N, args.M, args.h)
-    import warnings
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model = mfmjax.identify(sig, structure, mf)

@@ -49,8 +49,13 @@ def observe_window(
     are taken from the record (delays see the real history). The initial-state observer uses the
     first `ob_length` samples (default all); the simulation and E cover the whole window.
     """
-    ss, drive, direct = _forced(model, u, dt)
-    n = model.n
+    return _observe_forced(_forced(model, u, dt), y, dt, start, length, ob_length)
+
+
+def _observe_forced(forced, y, dt: float, start, length: int, ob_length: int | None):
+    """`observe_window` on a precomputed whole-record drive (shared by moving windows)."""
+    ss, drive, direct = forced
+    n = ss.A.shape[0]
     Phi = expm(ss.A * dt)
     dr = jax.lax.dynamic_slice_in_dim(drive, start, length)
     di = jax.lax.dynamic_slice_in_dim(direct, start, length)
@@ -185,9 +190,13 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
         )
     _window(model, signals, (signals.t0, signals.t0 + (length - 1) * signals.dt),
             "moving_final_states")
-    obs = jax.vmap(
-        lambda e: _observe(model, signals.y, signals.u, signals.dt, e - (length - 1), length, None)
-    )(ends)
+    return _moving(model, signals.y, signals.u, signals.dt, ends, length)
+
+
+@eqx.filter_jit
+def _moving(model, y, u, dt, ends, length):
+    forced = _forced(model, u, dt)  # once for the record, not once per window
+    obs = jax.vmap(lambda e: _observe_forced(forced, y, dt, e - (length - 1), length, None))(ends)
     return obs.x_final
 
 
