@@ -107,22 +107,28 @@ def feedthrough_corrections(
 
     **Returns:** list of (k, Delta_k (T, n+1)) for those inputs (empty if none).
     """
-    n, dt = structure.n, signals.dt
-    length = kernel_length(static_span(signals, mf, delay_max), dt)
-    out = []
-    for k in range(signals.n_inputs):
-        if structure.m[k] != n or signals.smooth[k] or signals.output_rule != "cubic":
-            continue
-        x, tau, mode = signals.u[:, k], signals.delays[k], signals.intersample[k]
-        on_grid = delayed_samples(x, tau, dt, mode)  # what D_k u_k(t - tau_k) puts into y's samples
-        cols = []
-        for i in range(n + 1):
-            scale = mf.h ** (-i)
-            seen = modulate(on_grid, kernel_weights(mf, i, dt, "cubic", 0.0, length) * scale)
-            true = modulate(x, kernel_weights(mf, i, dt, mode, tau, length) * scale)
-            cols.append(seen - true)
-        out.append((k, jnp.stack(cols, axis=1)))
-    return out
+    length = kernel_length(static_span(signals, mf, delay_max), signals.dt)
+    return [
+        (k, feedthrough_columns(signals, k, structure.n, mf, length))
+        for k in range(signals.n_inputs)
+        if structure.m[k] == structure.n and not signals.smooth[k]
+        and signals.output_rule == "cubic"
+    ]
+
+
+def feedthrough_columns(signals: Signals, k: int, n: int, mf: ModulatingFunction, length: int):
+    r"""$\Delta_{k,i}$, $i = 0..n$ (T, n+1): cubic rule on the samples of $u_k(t_j-\tau_k)$ minus
+    $u_k$'s own exact (zoh/foh, delayed) rule, in the scaling of the output columns."""
+    dt = signals.dt
+    x, tau, mode = signals.u[:, k], signals.delays[k], signals.intersample[k]
+    on_grid = delayed_samples(x, tau, dt, mode)  # what D_k u_k(t - tau_k) puts into y's samples
+    cols = []
+    for i in range(n + 1):
+        scale = mf.h ** (-i)
+        seen = modulate(on_grid, kernel_weights(mf, i, dt, "cubic", 0.0, length) * scale)
+        true = modulate(x, kernel_weights(mf, i, dt, mode, tau, length) * scale)
+        cols.append(seen - true)
+    return jnp.stack(cols, axis=1)
 
 
 def gram(ms: ModulatedSignals) -> jax.Array:

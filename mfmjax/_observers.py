@@ -52,8 +52,14 @@ def observe_window(
     return _observe_forced(_forced(model, u, dt), y, dt, start, length, ob_length)
 
 
-def _observe_forced(forced, y, dt: float, start, length: int, ob_length: int | None):
-    """`observe_window` on a precomputed whole-record drive (shared by moving windows)."""
+def _observe_forced(
+    forced, y, dt: float, start, length: int, ob_length: int | None, state_mask=None
+):
+    """`observe_window` on a precomputed whole-record drive (shared by moving windows).
+
+    `state_mask` (n,) marks the live states of a zero-padded realisation (batched search over
+    orders): padded states get x = 0 and do not enter the Gramian's conditioning.
+    """
     ss, drive, direct = forced
     n = ss.A.shape[0]
     Phi = expm(ss.A * dt)
@@ -74,6 +80,10 @@ def _observe_forced(forced, y, dt: float, start, length: int, ob_length: int | N
     rhs = rows.T @ (q_ob * (yw - y_forced))
     d = 1.0 / jnp.sqrt(jnp.where(jnp.diagonal(M0) > 0, jnp.diagonal(M0), 1.0))
     Me = d[:, None] * M0 * d[None, :]
+    if state_mask is not None:
+        live = state_mask[:, None] & state_mask[None, :]
+        Me = jnp.where(live, Me, jnp.eye(n))
+        rhs = jnp.where(state_mask, rhs, 0.0)
     x0 = d * jnp.linalg.solve(Me, d * rhs)
     lam = jnp.linalg.eigvalsh(Me)
     cond = lam[-1] / jnp.maximum(lam[0], lam[-1] * jnp.finfo(jnp.float64).eps)

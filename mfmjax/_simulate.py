@@ -59,7 +59,13 @@ def _forced(model: Model, u, dt: float):
         cols.append(jnp.ones(T))
         modes.append("zoh")
         delays.append(jnp.asarray(0.0))
-    drive = jnp.zeros((T, model.n))
+    drive, direct = forced_terms(ss, cols, modes, delays, dt, T)
+    return ss, drive, direct
+
+
+def forced_terms(ss, cols, modes, delays, dt: float, T: int):
+    """Per-step drive (T, n) and direct term (T,) of input columns through (A, B, D)."""
+    drive = jnp.zeros((T, ss.A.shape[0]))
     direct = jnp.zeros(T)
     for k, (x, mode, tau) in enumerate(zip(cols, modes, delays)):
         d, f = split_delay(tau, dt)
@@ -67,7 +73,7 @@ def _forced(model: Model, u, dt: float):
         um1, u0, up1 = shift_samples(x, d + 1), shift_samples(x, d), shift_samples(x, d - 1)
         drive = drive + um1[:, None] * P + u0[:, None] * Q + up1[:, None] * R
         direct = direct + ss.D[0, k] * delayed_samples(x, tau, dt, mode)
-    return ss, drive, direct
+    return drive, direct
 
 
 def simulate_status(model: Model, u, x0, dt: float):
