@@ -26,6 +26,8 @@ from ._observers import performance_index as performance_index  # noqa: E402
 from ._persist import load_model as load_model  # noqa: E402
 from ._persist import save_model as save_model  # noqa: E402
 from ._quadrature import kernel_weights as kernel_weights  # noqa: E402
+from ._search import SearchResult as SearchResult  # noqa: E402
+from ._search import search as search  # noqa: E402
 from ._signals import Signals as Signals  # noqa: E402
 from ._simulate import simulate as simulate  # noqa: E402
 from ._solve import closed_form as closed_form  # noqa: E402

@@ -1,0 +1,519 @@
+r"""Batched structure search over (N, M, h, delays) x (n, m_1..m_K): one compiled computation.
+
+Work sharing:
+
+- a *group* is one setting of (N, M, h, delays). Its modulated signals and Gram matrix are
+  computed once, for the largest structure of the grid ($n_{max}$, $m_{k,max}$), plus the
+  feed-through columns $\Delta_k$ (for candidates with $m_k = n$), as one extended Gram;
+- every structure of the grid is a masked sub-block of that Gram: `constrained_solve` with a
+  column mask solves all of them batched (masked columns get $\theta_j = 0$), exactly the
+  problem `identify` solves for that structure;
+- every candidate is then simulated from its initial-state-observer estimate on the validation
+  window (eq. 14, 17) through a zero-padded realisation of order $n_{max}$ with a state mask.
+
+Groups are processed in chunks of fixed size (one compilation for the whole grid, memory flat
+in the candidate count) and each chunk's group axis is sharded over all `jax.devices()` with a
+1-D mesh (`NamedSharding`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._gram import feedthrough_columns, gram, modulated_signals
+from ._identify import FEEDTHROUGH_STEPS
+from ._model import Model
+from ._modulating import ModulatingFunction
+from ._observers import MIN_WINDOW, _observe_forced
+from ._quadrature import kernel_length
+from ._signals import Signals
+from ._simulate import forced_terms
+from ._solve import DEAD_COLUMN_RTOL, constrained_solve, solve_status
+from ._statespace import StateSpace
+from ._status import Status, describe
+from ._structure import Structure
+
+SCORES = ("E", "J", "fit", "aic", "bic")
+
+
+# -- the grid ---------------------------------------------------------------------------------
+
+
+def _values(x, name: str) -> list:
+    vals = [x] if np.isscalar(x) else list(x)
+    if not vals:
+        raise ValueError(f"search(): the {name} grid is empty")
+    return vals
+
+
+def _structures(n_grid, m_grid, K: int) -> list[tuple[int, tuple[int, ...]]]:
+    out = []
+    for n in sorted(set(int(v) for v in n_grid)):
+        if n < 1:
+            raise ValueError(f"search(): orders n must be >= 1 (got {n})")
+        per_input = []
+        for k in range(K):
+            allowed = sorted(set(int(v) for v in m_grid[k])) if m_grid is not None else range(n)
+            per_input.append([mk for mk in allowed if 0 <= mk <= n])
+        for m in itertools.product(*per_input):
+            out.append((n, tuple(m)))
+    return out
+
+
+class SearchResult(eqx.Module):
+    """Ranked candidates of a `search` (numpy arrays, one row per feasible candidate).
+
+    Columns: `n`, `m` (C, K), `N`, `M`, `h`, `delays` (C, K), `J` (scale-free J_rel), `E`,
+    `fit`, `aic`, `bic`, `status`, `theta` (C, p_max; padded layout [a_0..a_nmax, b_1.., ..]),
+    `a` (C, nmax+1), `b` (C, K, mmax+1), `offset`. `rank` orders them best first by `score`.
+    """
+
+    columns: dict
+    rank: np.ndarray
+    score: str = eqx.field(static=True)
+    n_max: int = eqx.field(static=True)
+    m_max: tuple[int, ...] = eqx.field(static=True)
+    intersample: tuple[str, ...] = eqx.field(static=True)
+    has_offset: bool = eqx.field(static=True)
+    output_name: str = eqx.field(static=True)
+    input_names: tuple[str, ...] = eqx.field(static=True)
+    compile_s: float = eqx.field(static=True)
+    run_s: float = eqx.field(static=True)
+
+    def __len__(self) -> int:
+        return int(self.rank.shape[0])
+
+    def row(self, i: int) -> dict:
+        """Candidate of rank `i` (0 = best) as a plain dict."""
+        c, j = self.columns, int(self.rank[i])
+        n = int(c["n"][j])
+        m = [int(v) for v in c["m"][j]]
+        return {
+            "rank": i + 1,
+            "n": n,
+            "m": m,
+            "N": _num(c["N"][j]),
+            "M": _num(c["M"][j]),
+            "h": float(c["h"][j]),
+            "delays": [float(v) for v in c["delays"][j]],
+            "J": _finite(c["J"][j]),
+            "E": _finite(c["E"][j]),
+            "fit": _finite(c["fit"][j]),
+            "aic": _finite(c["aic"][j]),
+            "bic": _finite(c["bic"][j]),
+            "status": describe(int(c["status"][j])),
+            "a": [float(v) for v in c["a"][j][: n + 1]],
+            "b": [[float(v) for v in c["b"][j][k][: m[k] + 1]] for k in range(len(m))],
+            "offset": float(c["offset"][j]) if self.has_offset else None,
+        }
+
+    def best(self, i: int = 0) -> Model:
+        """The candidate of rank `i` as a `Model` (parameters exactly as searched)."""
+        r = self.row(i)
+        c, j = self.columns, int(self.rank[i])
+        structure = Structure(r["n"], r["m"])
+        return Model(
+            a=jnp.asarray(r["a"]),
+            b=tuple(jnp.asarray(bk) for bk in r["b"]),
+            offset=jnp.asarray(r["offset"] or 0.0),
+            delays=jnp.asarray(r["delays"]),
+            theta=jnp.asarray(_compact_theta(c["theta"][j], r["n"], r["m"], self)),
+            J=jnp.asarray(c["J_raw"][j]),
+            J_rel=jnp.asarray(c["J"][j]),
+            cond=jnp.asarray(c["cond"][j]),
+            status=jnp.asarray(int(c["status"][j]), dtype=jnp.int32),
+            mf=ModulatingFunction(r["N"], r["M"], r["h"]),
+            structure=structure,
+            intersample=self.intersample,
+            has_offset=self.has_offset,
+            output_name=self.output_name,
+            input_names=self.input_names,
+        )
+
+    def table(self, top: int = 10) -> str:
+        """Readable table of the best `top` candidates."""
+        head = (f"{'rank':>4} {'n':>2} {'m':>8} {'N':>4} {'M':>4} {'h':>9} {'delays':>14} "
+                f"{'J':>10} {'E':>11} {'fit%':>8} {'aic':>10} {'bic':>10}  status")
+        lines = [head]
+        for i in range(min(top, len(self))):
+            r = self.row(i)
+            lines.append(
+                f"{r['rank']:>4} {r['n']:>2} {','.join(map(str, r['m'])):>8} {r['N']:>4} "
+                f"{r['M']:>4} {r['h']:>9.4g} {','.join(f'{d:g}' for d in r['delays']):>14} "
+                f"{_fmt(r['J'], '.3e'):>10} {_fmt(r['E'], '.4e'):>11} {_fmt(r['fit'], '.2f'):>8} "
+                f"{_fmt(r['aic'], '.1f'):>10} {_fmt(r['bic'], '.1f'):>10}  {r['status']}"
+            )
+        return "\n".join(lines)
+
+    def to_dict(self, top: int | None = None) -> dict:
+        rows = [self.row(i) for i in range(len(self) if top is None else min(top, len(self)))]
+        return {"score": self.score, "candidates": len(self), "compile_s": self.compile_s,
+                "run_s": self.run_s, "ranked": rows}
+
+    def to_json(self, path=None, top: int | None = None) -> str:
+        text = json.dumps(self.to_dict(top))
+        if path is not None:
+            with open(path, "w") as fh:
+                fh.write(text)
+        return text
+
+    def to_pandas(self):
+        """All candidates, ranked, as a pandas DataFrame (pandas is optional)."""
+        import pandas as pd
+
+        return pd.DataFrame([self.row(i) for i in range(len(self))])
+
+
+def _compact_theta(theta_pad, n, m, res: SearchResult):
+    parts = [theta_pad[: n + 1]]
+    pos = res.n_max + 1
+    for k, mk in enumerate(res.m_max):
+        parts.append(theta_pad[pos : pos + m[k] + 1])
+        pos += mk + 1
+    if res.has_offset:
+        parts.append(theta_pad[pos : pos + 1])
+    return np.concatenate(parts)
+
+
+def _num(x):
+    v = float(x)
+    return int(v) if v == int(v) else v
+
+
+def _finite(x):
+    v = float(x)
+    return v if math.isfinite(v) else None
+
+
+def _fmt(v, spec):
+    return "-" if v is None else format(v, spec)
+
+
+# -- the batched computation ------------------------------------------------------------------
+
+
+class _Static(eqx.Module):
+    """Everything that fixes shapes and control flow of the compiled chunk."""
+
+    n_max: int = eqx.field(static=True)
+    m_max: tuple[int, ...] = eqx.field(static=True)
+    ft_inputs: tuple[int, ...] = eqx.field(static=True)  # inputs that may have m_k = n
+    length: int = eqx.field(static=True)  # kernel length
+    h_max: float = eqx.field(static=True)
+    delay_max: float = eqx.field(static=True)
+    v_start: int = eqx.field(static=True)
+    v_length: int = eqx.field(static=True)
+    ob_length: int = eqx.field(static=True)
+
+
+def _padded_state_space(a, bs, n, K_all):
+    """Eq. (18) for a model of (traced) order n <= n_max, zero-padded to n_max states."""
+    n_max = a.shape[0] - 1
+    i = jnp.arange(n_max)
+    live = i < n
+    A = jnp.where((i[:, None] == i[None, :] + 1) & live[:, None], 1.0, 0.0)
+    A = jnp.where((i[None, :] == n - 1) & live[:, None], -a[:n_max][:, None], A)
+    cols, ds = [], []
+    for bk in bs:  # bk padded to n_max + 1
+        d = bk[n]
+        cols.append(jnp.where(live, bk[:n_max] - d * a[:n_max], 0.0))
+        ds.append(d)
+    B = jnp.stack(cols, axis=1) if cols else jnp.zeros((n_max, 0))
+    D = jnp.stack(ds)[None, :] if ds else jnp.zeros((1, 0))
+    C = jnp.where(i == n - 1, 1.0, 0.0)[None, :]
+    return StateSpace(A, B, C, D), live
+
+
+def _chunk(sig: Signals, static: _Static, eta_full, groups, structs):
+    """All (group, structure) candidates of one chunk. groups: dict of (G,) / (G, K) arrays."""
+    K = sig.n_inputs
+    n_max, m_max = static.n_max, static.m_max
+    big = Structure(n_max, m_max)
+    p = n_max + 1 + sum(mk + 1 for mk in m_max) + int(sig.offset)
+    off = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])  # start of each b block
+
+    def one_group(N, M, h, delays):
+        mf = ModulatingFunction(N, M, h, h_max=static.h_max)
+        s = eqx.tree_at(lambda x: x.delays, sig, delays)
+        ms = modulated_signals(s, big, mf, static.delay_max)
+        deltas = [feedthrough_columns(s, k, n_max, mf, static.length) for k in static.ft_inputs]
+        cols = jnp.concatenate([ms.columns] + deltas, axis=1)
+        Gx = gram(eqx.tree_at(lambda x: x.columns, ms, cols))  # extended Gram
+        G0 = Gx[:p, :p]
+        alive = jnp.sqrt(jnp.maximum(jnp.diagonal(G0), 0.0)) > DEAD_COLUMN_RTOL * ms.bounds
+        finite = jnp.isfinite(sig.y).all() & jnp.isfinite(sig.u).all()
+        excited = jnp.all(ms.excited)
+        # realisation pieces shared by the group's structures: the input columns and delays
+        return G0, Gx, alive, finite, excited, ms.first
+
+    def one_candidate(G0, Gx, alive, finite, excited, h, N, M, delays, st):
+        n, mask, ft = st["n"], st["mask"], st["ft"]
+        active = mask & alive
+        eta = jnp.where(mask, eta_full, 0.0)
+        theta, cond, reduced = constrained_solve(G0, eta, active)
+        G = G0
+        if static.ft_inputs:
+            for _ in range(FEEDTHROUGH_STEPS):
+                an = jnp.where(theta[n] != 0, theta[n], 1.0)
+                P = jnp.eye(Gx.shape[0], p)
+                for q, k in enumerate(static.ft_inputs):
+                    Dk = jnp.where(ft[k], theta[off[k] + n] / an, 0.0)
+                    rows = p + q * (n_max + 1) + jnp.arange(n_max + 1)
+                    P = P.at[rows, jnp.arange(n_max + 1)].set(-Dk)
+                G = P.T @ Gx @ P
+                theta, cond, reduced = constrained_solve(G, eta, active)
+        status = solve_status(theta, reduced, finite)
+        dead = jnp.any(mask & ~alive)
+        status = status | jnp.where(excited & ~dead, 0, Status.NO_EXCITATION)
+        an = theta[n]
+        scale_a = jnp.max(jnp.where(jnp.arange(p) <= n, jnp.abs(theta), 0.0))
+        an_ok = jnp.abs(an) > 1e-12 * scale_a
+        status = status | jnp.where(an_ok, 0, Status.A_N_ZERO)
+        norm = theta / jnp.where(an_ok, an, 1.0)
+        quad = jnp.maximum(theta @ G @ theta, 0.0)
+        terms = jnp.sum(theta**2 * jnp.diagonal(G))
+        J_rel = jnp.sqrt(quad / jnp.where(terms > 0, terms, 1.0))
+        J_raw = h ** (N + M + 1) * jnp.sqrt(quad)
+        # validation: observer initial state + simulation on the validation window
+        a = jnp.where(jnp.arange(n_max + 1) <= n, norm[: n_max + 1], 0.0)
+        bs = [jnp.zeros(n_max + 1).at[: m_max[k] + 1].set(norm[off[k] : off[k] + m_max[k] + 1])
+              for k in range(K)]
+        modes, dl = list(sig.intersample), [delays[k] for k in range(K)]
+        u_cols = [sig.u[:, k] for k in range(K)]
+        if sig.offset:
+            bs.append(jnp.zeros(n_max + 1).at[0].set(norm[p - 1]))
+            modes.append("zoh")
+            dl.append(jnp.asarray(0.0))
+            u_cols.append(jnp.ones(sig.n_samples))
+        ss, live = _padded_state_space(a, bs, n, K)
+        drive, direct = forced_terms(ss, u_cols, modes, dl, sig.dt, sig.n_samples)
+        obs = _observe_forced((ss, drive, direct), sig.y, sig.dt, static.v_start,
+                              static.v_length, static.ob_length, live)
+        eig = jnp.linalg.eigvals(jnp.where(live[:, None] & live[None, :], ss.A, 0.0))
+        unstable = jnp.max(jnp.real(eig)) > 0
+        status = status | obs.status | jnp.where(unstable, Status.UNSTABLE, 0)
+        yv = jax.lax.dynamic_slice_in_dim(sig.y, static.v_start, static.v_length)
+        fit = 100.0 * (1.0 - jnp.linalg.norm(yv - obs.y_sim) / jnp.linalg.norm(yv - yv.mean()))
+        k_par = st["k"]
+        Nv = static.v_length
+        mse = obs.E / (Nv * sig.dt)
+        loglik = Nv * jnp.log(jnp.maximum(mse, 1e-300))
+        return dict(theta=theta, a=a, b=jnp.stack(bs[:K], 0) if K else jnp.zeros((0, n_max + 1)),
+                    offset=norm[p - 1] if sig.offset else jnp.asarray(0.0), J=J_rel, J_raw=J_raw,
+                    cond=cond, E=obs.E, fit=fit, aic=loglik + 2 * k_par,
+                    bic=loglik + k_par * jnp.log(Nv), status=status.astype(jnp.int32))
+
+    def group_all(N, M, h, delays):
+        G0, Gx, alive, finite, excited, _ = one_group(N, M, h, delays)
+        return jax.vmap(
+            lambda st: one_candidate(G0, Gx, alive, finite, excited, h, N, M, delays, st)
+        )(structs)
+
+    return jax.vmap(group_all)(groups["N"], groups["M"], groups["h"], groups["delays"])
+
+
+_chunk_jit = eqx.filter_jit(_chunk)
+
+
+def _mesh():
+    devices = jax.devices()
+    return jax.make_mesh((len(devices),), ("c",), axis_types=(jax.sharding.AxisType.Auto,))
+
+
+def search(
+    signals: Signals,
+    *,
+    n: Sequence[int] | int = (1, 2, 3),
+    N: Sequence[float] | float = (3, 4, 5),
+    M: Sequence[float] | float = (3, 4, 5),
+    h: Sequence[float] | float,
+    m: Sequence[Sequence[int]] | None = None,
+    delays: Sequence[Sequence[float]] | None = None,
+    score: str = "E",
+    validate: tuple[float, float] | None = None,
+    observer_window: float | None = None,
+    eta=None,
+    chunk_size: int = 16,
+    progress: Callable[[int, int], None] | None = None,
+) -> SearchResult:
+    r"""Identify and score every feasible candidate of a grid, batched (see module docstring).
+
+    **Arguments:**
+
+    - `signals`: the experiment. Its own `delays` are ignored when `delays` is given.
+    - `n`: output orders; `m`: per input, the allowed numerator orders (default: 0..n-1 for
+      each n; values above n are skipped); `N`, `M`, `h`: modulating function settings;
+      `delays`: per input, the delays to try. Candidates with N < n or M < n are skipped.
+    - `score`: ranking key, one of `"E"` (eq. 17 on the validation window), `"J"` (scale-free
+      equation error J_rel), `"fit"` (NRMSE %), `"aic"`, `"bic"` ($N_v \ln(E/T_v) + 2k$ and
+      $+ k \ln N_v$, k = number of free parameters). Flagged candidates rank after the others.
+    - `validate`: (t0, t1) window for E and fit (default: the whole record); the state at its
+      start comes from the initial-state observer over `observer_window` (default: the window).
+    - `chunk_size`: groups of (N, M, h, delays) per compiled chunk (rounded up to a multiple of
+      the device count); `progress(done, total)` is called after each chunk.
+
+    **Returns:** a `SearchResult`.
+    """
+    if not isinstance(signals, Signals):
+        raise TypeError("search(): signals must be a Signals")
+    if score not in SCORES:
+        raise ValueError(f"search(): unknown score {score!r}; use one of {SCORES}")
+    K = signals.n_inputs
+    n_grid = _values(n, "n")
+    N_grid = [float(v) for v in _values(N, "N")]
+    M_grid = [float(v) for v in _values(M, "M")]
+    h_grid = [float(v) for v in _values(h, "h")]
+    if m is not None:
+        m = [_values(mk, f"m[{k}]") for k, mk in enumerate(m)]
+        if len(m) != K:
+            raise ValueError(f"search(): m needs one list of orders per input ({K}), got {len(m)}")
+    if delays is not None:
+        delays = [[float(d) for d in _values(dk, f"delays[{k}]")] for k, dk in enumerate(delays)]
+        if len(delays) != K:
+            raise ValueError(f"search(): delays needs one list per input ({K}), got {len(delays)}")
+    else:
+        delays = [[float(v)] for v in np.asarray(signals.delays)]
+    for name, vals in (("N", N_grid), ("M", M_grid), ("h", h_grid)):
+        if any(not math.isfinite(v) or v <= 0 for v in vals):
+            raise ValueError(f"search(): {name} values must be finite and > 0 (got {vals})")
+    if any(d < 0 or d >= signals.duration for dk in delays for d in dk):
+        raise ValueError("search(): delays must be >= 0 and shorter than the record")
+    structs = _structures(n_grid, m, K)
+    if not structs:
+        raise ValueError("search(): no structure in the grid (check n and m)")
+    n_max = max(s[0] for s in structs)
+    m_max = tuple(max(s[1][k] for s in structs) for k in range(K))
+    ft_inputs = tuple(
+        k for k in range(K)
+        if any(s[1][k] == s[0] for s in structs) and not signals.smooth[k]
+        and signals.output_rule == "cubic"
+    )
+    if max(N_grid) + max(M_grid) > 20:
+        raise ValueError("search(): N + M must be <= 20")
+    if min(N_grid) < 1 or min(M_grid) < 1:
+        raise ValueError("search(): N and M must be >= 1")
+    combos = list(itertools.product(N_grid, M_grid, h_grid, itertools.product(*delays)))
+    feasible = [(i, si) for i, (Nv, Mv, _, _) in enumerate(combos)
+                for si, (ns, _) in enumerate(structs) if Nv >= ns and Mv >= ns]
+    if not feasible:
+        raise ValueError("search(): every candidate has N < n or M < n; widen N, M or lower n")
+    h_max = max(h_grid)
+    delay_max = max((max(dk) for dk in delays), default=0.0)
+    dt = signals.dt
+    from ._quadrature import support_samples
+
+    first = int(support_samples(h_max + delay_max, dt))
+    p_needed = n_max + 1 + sum(mk + 1 for mk in m_max) + int(signals.offset)
+    if signals.n_samples - first < max(8, 2 * p_needed):
+        raise ValueError(
+            f"search(): h={h_max:g} (+ delays {delay_max:g}) leaves too few valid samples in "
+            f"the record ({signals.duration:g} time units); use smaller h"
+        )
+    if validate is None:
+        v0, v1 = 0, signals.n_samples - 1
+    else:
+        v0 = round((float(validate[0]) - signals.t0) / dt)
+        v1 = round((float(validate[1]) - signals.t0) / dt)
+        if v0 < 0 or v1 > signals.n_samples - 1 or v1 - v0 + 1 < max(MIN_WINDOW, 2 * n_max):
+            raise ValueError(
+                f"search(): validate window {tuple(validate)} must lie inside the record and "
+                f"hold at least {max(MIN_WINDOW, 2 * n_max)} samples"
+            )
+    v_len = v1 - v0 + 1
+    ob = v_len if observer_window is None else round(float(observer_window) / dt) + 1
+    if not MIN_WINDOW <= ob <= v_len:
+        raise ValueError("search(): observer_window must fit inside the validation window")
+    p = p_needed
+    eta = jnp.ones(p) if eta is None else jnp.asarray(eta, dtype=jnp.float64)
+    if eta.shape != (p,):
+        raise ValueError(f"search(): eta must have {p} entries (padded layout)")
+    static = _Static(n_max, m_max, ft_inputs, kernel_length(h_max + delay_max, dt), h_max,
+                     delay_max, v0, v_len, ob)
+    S = len(structs)
+    struct_arr = {
+        "n": jnp.asarray([s[0] for s in structs], dtype=jnp.int32),
+        "mask": jnp.asarray([_mask(s, n_max, m_max, signals.offset) for s in structs]),
+        "ft": jnp.asarray([[s[1][k] == s[0] for k in range(K)] for s in structs]).reshape(S, K),
+        "k": jnp.asarray([s[0] + sum(mk + 1 for mk in s[1]) + int(signals.offset)
+                          for s in structs], dtype=jnp.float64),
+    }
+    # only groups with at least one feasible structure are computed
+    used = sorted({i for i, _ in feasible})
+    mesh = _mesh()
+    n_dev = mesh.devices.size
+    chunk = max(n_dev, int(math.ceil(chunk_size / n_dev)) * n_dev)
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("c"))
+    outs, t_compile, t_run = [], 0.0, 0.0
+    for c0 in range(0, len(used), chunk):
+        idx = used[c0 : c0 + chunk]
+        idx = idx + [idx[-1]] * (chunk - len(idx))  # pad the last chunk: same shapes
+        g = {
+            "N": np.asarray([combos[i][0] for i in idx]),
+            "M": np.asarray([combos[i][1] for i in idx]),
+            "h": np.asarray([combos[i][2] for i in idx]),
+            "delays": np.asarray([combos[i][3] for i in idx], dtype=np.float64).reshape(chunk, K),
+        }
+        g = {k: jax.device_put(v, sharding) for k, v in g.items()}
+        t0 = time.perf_counter()
+        res = _chunk_jit(signals, static, eta, g, struct_arr)
+        res = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(res))
+        dt_chunk = time.perf_counter() - t0
+        if c0 == 0:
+            t_compile = dt_chunk
+        else:
+            t_run += dt_chunk
+        outs.append((idx[: min(chunk, len(used) - c0)], res))
+        if progress is not None:
+            progress(min(c0 + chunk, len(used)), len(used))
+    return _collect(outs, combos, structs, feasible, signals, static, score, t_compile, t_run)
+
+
+def _mask(s, n_max, m_max, offset):
+    n, m = s
+    mask = [i <= n for i in range(n_max + 1)]
+    for k, mk in enumerate(m_max):
+        mask += [j <= m[k] for j in range(mk + 1)]
+    return mask + ([True] if offset else [])
+
+
+def _collect(outs, combos, structs, feasible, signals, static, score, t_compile, t_run):
+    ok_pairs = set(feasible)
+    rows = {key: [] for key in ("group", "struct")}
+    arrays: dict[str, list] = {}
+    for idx, res in outs:
+        for gi, gidx in enumerate(idx):
+            for si in range(len(structs)):
+                if (gidx, si) not in ok_pairs:
+                    continue
+                rows["group"].append(gidx)
+                rows["struct"].append(si)
+                for key, val in res.items():
+                    arrays.setdefault(key, []).append(val[gi, si])
+    cols = {key: np.stack(v) for key, v in arrays.items()}
+    g = rows["group"]
+    cols["n"] = np.asarray([structs[s][0] for s in rows["struct"]])
+    cols["m"] = np.asarray([structs[s][1] for s in rows["struct"]]).reshape(len(g), -1)
+    cols["N"] = np.asarray([combos[i][0] for i in g])
+    cols["M"] = np.asarray([combos[i][1] for i in g])
+    cols["h"] = np.asarray([combos[i][2] for i in g])
+    cols["delays"] = np.asarray([combos[i][3] for i in g]).reshape(len(g), -1)
+    key = {"E": cols["E"], "J": cols["J"], "fit": -cols["fit"], "aic": cols["aic"],
+           "bic": cols["bic"]}[score]
+    key = np.where(np.isfinite(key), key, np.inf)
+    bad = cols["status"] != 0
+    rank = np.lexsort((key, bad))
+    return SearchResult(
+        columns=cols, rank=rank, score=score, n_max=static.n_max, m_max=static.m_max,
+        intersample=signals.intersample, has_offset=signals.offset,
+        output_name=signals.output_name, input_names=signals.input_names,
+        compile_s=t_compile, run_s=t_run,
+    )
