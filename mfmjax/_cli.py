@@ -41,7 +41,8 @@ def _add_data_args(p: argparse.ArgumentParser):
     g.add_argument("--time", help="time column name (uniform sampling)")
     g.add_argument("--dt", type=float, help="sampling interval (when there is no time column)")
     p.add_argument("--intersample", help="per input: zoh or foh (default foh)")
-    p.add_argument("--delays", help="per input transport delay in time units")
+    p.add_argument("--delays", help="per input transport delay in time units "
+                   "(search: one grid per input separated by ';')")
     p.add_argument("--offset", action="store_true", help="add a constant offset term")
     p.add_argument("--names", help="column names for a file without header (comma separated)")
 
@@ -108,6 +109,92 @@ def _cmd_demo(args):
     print(f"\nJ = {float(model.J):.3e}   cond(equilibrated G) = {float(model.cond):.2e}")
 
 
+def _grid(text: str, name: str, integer: bool = False) -> list:
+    """'a:b' (inclusive integer range) or 'a,b,c' (list)."""
+    text = text.strip()
+    if ":" in text:
+        parts = text.split(":")
+        if len(parts) != 2:
+            raise _UserError(f"--{name}: expected a range a:b or a list a,b,c, got {text!r}")
+        lo, hi = (_ints(v, name)[0] if v.strip() else None for v in parts)
+        if lo is None or hi is None:
+            raise _UserError(f"--{name}: expected a range a:b, got {text!r}")
+        if hi < lo:
+            raise _UserError(f"--{name}: empty range {text!r} (the end is below the start)")
+        return list(range(lo, hi + 1))
+    vals = _ints(text, name) if integer else _floats(text, name)
+    if not vals:
+        raise _UserError(f"--{name}: empty grid")
+    return vals
+
+
+def _per_input_grid(text, name, K, integer):
+    parts = text.split(";")
+    if len(parts) == 1:
+        parts = parts * K
+    if len(parts) != K:
+        raise _UserError(f"--{name}: give one grid per input separated by ';' ({K} inputs)")
+    return [_grid(p, name, integer) for p in parts]
+
+
+class _Progress:
+    """A text progress bar on stderr, shown once a search has run for more than ~1.5 s."""
+
+    def __init__(self, label: str):
+        import time
+
+        self.label, self.t0, self.shown = label, time.perf_counter(), False
+
+    def __call__(self, done: int, total: int):
+        import time
+
+        if not self.shown and time.perf_counter() - self.t0 < 1.5 and done < total:
+            return
+        self.shown = True
+        width = 30
+        fill = int(width * done / max(total, 1))
+        sys.stderr.write(f"\r{self.label} [{'#' * fill}{'.' * (width - fill)}] {done}/{total}")
+        if done >= total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def _cmd_search(args):
+    import mfmjax
+
+    grid_delays = args.delays
+    args.delays = None
+    sig = _load_signals(args)
+    K = sig.n_inputs
+    kwargs = dict(
+        n=_grid(args.n, "n", True),
+        N=_grid(args.N, "N"),
+        M=_grid(args.M, "M"),
+        h=_grid(args.h, "h"),
+        score=args.score,
+    )
+    if args.m:
+        kwargs["m"] = _per_input_grid(args.m, "m", K, True)
+    if grid_delays:
+        kwargs["delays"] = _per_input_grid(grid_delays, "delays", K, False)
+    if args.validate:
+        window = _floats(args.validate, "validate")
+        if len(window) != 2:
+            raise _UserError("--validate: expected T0,T1")
+        kwargs["validate"] = tuple(window)
+    result = mfmjax.search(sig, progress=_Progress("search"), **kwargs)
+    if args.save:
+        from ._persist import save_model
+
+        save_model(result.best(), args.save)
+    if args.json:
+        print(result.to_json(top=args.top))
+    else:
+        print(f"{len(result)} candidates, ranked by {args.score} "
+              f"(compile {result.compile_s:.1f} s, run {result.run_s:.1f} s)")
+        print(result.table(args.top))
+
+
 def _cmd_validate(args):
     import mfmjax
 
@@ -168,6 +255,20 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--save", help="write the model to this JSON file")
     p.set_defaults(func=_cmd_identify)
+    p = sub.add_parser("search", help="batched search over orders and MF settings")
+    _add_data_args(p)
+    p.add_argument("--n", default="1:3", help="output orders, range a:b or list (default 1:3)")
+    p.add_argument("--m", help="numerator orders, one grid per input separated by ';' "
+                   "(default 0..n-1)")
+    p.add_argument("--N", default="3:5", help="exponent N grid (default 3:5)")
+    p.add_argument("--M", default="3:5", help="exponent M grid (default 3:5)")
+    p.add_argument("--h", required=True, help="widths h, list a,b,c")
+    p.add_argument("--score", default="E", choices=["E", "J", "fit", "aic", "bic"])
+    p.add_argument("--validate", help="T0,T1 validation window (default: whole record)")
+    p.add_argument("--top", type=int, default=10, help="rows to print")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--save", help="write the best model to this JSON file")
+    p.set_defaults(func=_cmd_search)
     p = sub.add_parser("validate", help="E, fit % and observed x0 of a saved model on a record")
     _add_data_args(p)
     p.add_argument("--model", required=True, help="model JSON written by identify --save")
@@ -181,10 +282,10 @@ def main(argv=None) -> int:
     try:
         args = parser.parse_args(argv)
         if args.command is None:
-            raise _UserError("mfmjax: give a command: identify, validate, demo (see --help)")
+            raise _UserError("mfmjax: give a command: identify, search, validate, demo (see --help)")
         for name in ("N", "M"):
             val = getattr(args, name, None)
-            if val is not None and val == int(val):
+            if isinstance(val, float) and val == int(val):
                 setattr(args, name, int(val))
         args.func(args)
     except (_UserError, ValueError, TypeError, OSError) as err:

@@ -17,8 +17,8 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import expm
 
+from ._linalg import eigvalsh, expm, solve
 from ._model import Model
 from ._quadrature import gregory_weights
 from ._signals import Signals
@@ -84,8 +84,8 @@ def _observe_forced(
         live = state_mask[:, None] & state_mask[None, :]
         Me = jnp.where(live, Me, jnp.eye(n))
         rhs = jnp.where(state_mask, rhs, 0.0)
-    x0 = d * jnp.linalg.solve(Me, d * rhs)
-    lam = jnp.linalg.eigvalsh(Me)
+    x0 = d * solve(Me, d * rhs)
+    lam = eigvalsh(Me)
     cond = lam[-1] / jnp.maximum(lam[0], lam[-1] * jnp.finfo(jnp.float64).eps)
 
     def traj(x, d):

@@ -31,9 +31,10 @@ import numpy as np
 
 from ._gram import feedthrough_columns, gram, modulated_signals
 from ._identify import FEEDTHROUGH_STEPS
+from ._linalg import hurwitz
 from ._model import Model
 from ._modulating import ModulatingFunction
-from ._observers import MIN_WINDOW, _observe_forced
+from ._observers import MIN_WINDOW, _observe_forced, fit_percent
 from ._quadrature import kernel_length
 from ._signals import Signals
 from ._simulate import forced_terms
@@ -43,6 +44,7 @@ from ._status import Status, describe
 from ._structure import Structure
 
 SCORES = ("E", "J", "fit", "aic", "bic")
+E_TIE_RTOL = 1e-12  # E values closer than this fraction of int y^2 rank by parameter count
 
 
 # -- the grid ---------------------------------------------------------------------------------
@@ -270,7 +272,8 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs):
                     rows = p + q * (n_max + 1) + jnp.arange(n_max + 1)
                     P = P.at[rows, jnp.arange(n_max + 1)].set(-Dk)
                 G = P.T @ Gx @ P
-                theta, cond, reduced = constrained_solve(G, eta, active)
+                theta, _, _ = constrained_solve(G, eta, active, conditioning=False)
+            theta, cond, reduced = constrained_solve(G, eta, active)
         status = solve_status(theta, reduced, finite)
         dead = jnp.any(mask & ~alive)
         status = status | jnp.where(excited & ~dead, 0, Status.NO_EXCITATION)
@@ -298,11 +301,10 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs):
         drive, direct = forced_terms(ss, u_cols, modes, dl, sig.dt, sig.n_samples)
         obs = _observe_forced((ss, drive, direct), sig.y, sig.dt, static.v_start,
                               static.v_length, static.ob_length, live)
-        eig = jnp.linalg.eigvals(jnp.where(live[:, None] & live[None, :], ss.A, 0.0))
-        unstable = jnp.max(jnp.real(eig)) > 0
+        unstable = ~hurwitz(a)
         status = status | obs.status | jnp.where(unstable, Status.UNSTABLE, 0)
         yv = jax.lax.dynamic_slice_in_dim(sig.y, static.v_start, static.v_length)
-        fit = 100.0 * (1.0 - jnp.linalg.norm(yv - obs.y_sim) / jnp.linalg.norm(yv - yv.mean()))
+        fit = fit_percent(yv, obs.y_sim)
         k_par = st["k"]
         Nv = static.v_length
         mse = obs.E / (Nv * sig.dt)
@@ -355,7 +357,9 @@ def search(
       `delays`: per input, the delays to try. Candidates with N < n or M < n are skipped.
     - `score`: ranking key, one of `"E"` (eq. 17 on the validation window), `"J"` (scale-free
       equation error J_rel), `"fit"` (NRMSE %), `"aic"`, `"bic"` ($N_v \ln(E/T_v) + 2k$ and
-      $+ k \ln N_v$, k = number of free parameters). Flagged candidates rank after the others.
+      $+ k \ln N_v$, k = number of free parameters). Flagged candidates rank after the others;
+      ties (for E: differences below 1e-12 of $\int y^2$, i.e. rounding noise on noise-free
+      data) go to the candidate with fewer parameters.
     - `validate`: (t0, t1) window for E and fit (default: the whole record); the state at its
       start comes from the initial-state observer over `observer_window` (default: the window).
     - `chunk_size`: groups of (N, M, h, delays) per compiled chunk (rounded up to a multiple of
@@ -509,8 +513,14 @@ def _collect(outs, combos, structs, feasible, signals, static, score, t_compile,
     key = {"E": cols["E"], "J": cols["J"], "fit": -cols["fit"], "aic": cols["aic"],
            "bic": cols["bic"]}[score]
     key = np.where(np.isfinite(key), key, np.inf)
+    if score == "E":  # E below rounding noise (1e-12 of the output energy) is a tie: fewer
+        yv = np.asarray(signals.y)[static.v_start : static.v_start + static.v_length]
+        q = E_TIE_RTOL * float(np.sum(yv**2)) * signals.dt + 1e-300
+        key = np.where(np.isfinite(key), np.floor(key / q), np.inf)
+    n_par = np.asarray([structs[s][0] + sum(mk + 1 for mk in structs[s][1])
+                        for s in rows["struct"]])
     bad = cols["status"] != 0
-    rank = np.lexsort((key, bad))
+    rank = np.lexsort((n_par, key, bad))  # status, then score, then fewer parameters
     return SearchResult(
         columns=cols, rank=rank, score=score, n_max=static.n_max, m_max=static.m_max,
         intersample=signals.intersample, has_offset=signals.offset,

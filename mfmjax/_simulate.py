@@ -15,8 +15,8 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import expm
 
+from ._linalg import expm
 from ._model import Model
 from ._quadrature import delayed_samples, shift_samples, split_delay
 from ._statespace import state_space

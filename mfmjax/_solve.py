@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from . import _linalg
 from ._status import Status
 
 DEAD_COLUMN_RTOL = 1e-10  # column norm below this fraction of its bound: no excitation, masked
@@ -20,7 +21,7 @@ def closed_form(G, eta):
     return g / (eta @ g)
 
 
-def constrained_solve(G, eta, active):
+def constrained_solve(G, eta, active, conditioning: bool = True):
     r"""Production solve of eq. (11): equilibrated KKT system, well defined for singular G.
 
     With $D = \mathrm{diag}(G)^{-1/2}$ on the active columns, $\tilde G = D G D$ and
@@ -29,7 +30,7 @@ def constrained_solve(G, eta, active):
      \begin{bmatrix}\tilde\theta\\ \lambda\end{bmatrix} = \begin{bmatrix}0\\ 1/\|e\|\end{bmatrix}$,
     $\theta = D\tilde\theta$. This is the same minimiser as eq. (12) whenever G is invertible, and
     stays unique while $G$ is positive definite on $\{\eta^T\theta = 0\}$. Inactive (masked)
-    columns get $\theta_j = 0$.
+    columns get $\theta_j = 0$. Pure XLA linear algebra (`_linalg`): safe under `vmap`.
 
     **Returns:** `(theta, cond, reduced_cond)`: `cond` is cond of the equilibrated active block
     (capped at 1/eps), `reduced_cond` is $\lambda_{max}/\lambda_2$, the conditioning of the
@@ -47,9 +48,11 @@ def constrained_solve(G, eta, active):
     s = jnp.where(s > 0, s, 1.0)
     kkt = jnp.block([[Gt, (e / s)[:, None]], [(e / s)[None, :], jnp.zeros((1, 1))]])
     rhs = jnp.zeros(p + 1).at[p].set(1.0 / s)
-    sol = jnp.linalg.solve(kkt, rhs)
+    sol = _linalg.solve(kkt, rhs)
     theta = jnp.where(active, d * sol[:p], 0.0)
-    lam = jnp.linalg.eigvalsh(jnp.where(mask2, Gt, 0.0))  # ascending; inactive give zeros
+    if not conditioning:  # inner fixed-point steps need theta only
+        return theta, None, None
+    lam = _linalg.eigvalsh(jnp.where(mask2, Gt, 0.0))  # ascending; inactive give zeros
     n_off = p - jnp.sum(active)
     lmax = lam[-1]
     lmin = jnp.maximum(lam[jnp.clip(n_off, 0, p - 1)], lmax * _EPS)

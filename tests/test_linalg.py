@@ -1,0 +1,48 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg as sl
+
+from mfmjax import _linalg as L
+
+
+@pytest.mark.parametrize("n", [1, 3, 8, 25])
+def test_solve_eigvalsh_expm_match_lapack(n):
+    rng = np.random.default_rng(n)
+    A, b = rng.normal(size=(n, n)), rng.normal(size=n)
+    ref = np.linalg.solve(A, b)
+    # backward-stable elimination: error ~ cond(A) * eps
+    assert np.max(np.abs(np.asarray(L.solve(A, b)) - ref)) <= 1e-13 * np.linalg.cond(A) * np.max(
+        np.abs(ref))
+    S = A @ A.T
+    lam = np.linalg.eigvalsh(S)
+    assert np.max(np.abs(np.asarray(L.eigvalsh(S)) - lam)) <= 1e-13 * lam[-1]
+    for scale in (1e-3, 1.0, 40.0):
+        E = sl.expm(A * scale / n)
+        assert np.max(np.abs(np.asarray(L.expm(A * scale / n)) - E)) <= 1e-13 * np.max(np.abs(E))
+
+
+def test_batched_and_grad():
+    rng = np.random.default_rng(0)
+    As = jnp.asarray(rng.normal(size=(5, 4, 4)))
+    bs = jnp.asarray(rng.normal(size=(5, 4)))
+    batched = jax.vmap(L.solve)(As, bs)
+    assert np.allclose(np.asarray(batched), np.linalg.solve(np.asarray(As), np.asarray(bs)[..., None])[..., 0],
+                       rtol=1e-12)
+    A = jnp.asarray(rng.normal(size=(3, 3)))
+
+    def f(t):
+        return jnp.sum(L.expm(A * t))
+
+    t0, eps = 0.7, 1e-6
+    fd = (f(t0 + eps) - f(t0 - eps)) / (2 * eps)
+    assert abs(jax.grad(f)(t0) - fd) <= 1e-7 * abs(fd)
+
+
+@pytest.mark.parametrize(
+    "a", [[1, 3.5, 3.5, 1], [2, 3, 1, 0], [1, -1, 1], [0, 1, 1], [1, 0, 1], [62.86e-6, 10.82e-3, 1],
+          [1, 2, 3, 4, 1, 0, 0], [-1, 0, 1], [6, 11, 6, 1, 0]])
+def test_hurwitz_matches_roots(a):
+    roots = np.roots(np.trim_zeros(np.asarray(a, float)[::-1], "f"))
+    assert bool(L.hurwitz(jnp.asarray(a, dtype=float))) == bool(np.all(roots.real < 0))
