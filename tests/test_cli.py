@@ -147,3 +147,39 @@ def test_validate_user_errors(csv_file, tmp_path, capsys, extra, content, match)
     assert main(args + extra) == 2
     err = capsys.readouterr().err.strip()
     assert match in err and len(err.splitlines()) == 1
+
+
+def test_search_cli(csv_file, tmp_path, capsys):
+    best = tmp_path / "best.json"
+    assert main(["search", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
+                 "--intersample", "foh,zoh", "--n", "2:3", "--m", "0:1;0", "--N", "4", "--M",
+                 "4:5", "--h", "1.5,2", "--top", "3", "--json", "--save", str(best)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["candidates"] == 16 and len(out["ranked"]) == 3  # 4 structures x 4 groups
+    assert out["ranked"][0]["n"] == 3 and out["ranked"][0]["m"] == [1, 0]
+    import mfmjax
+
+    assert mfmjax.load_model(best).n == 3
+
+
+@pytest.mark.parametrize(
+    "extra,match",
+    [
+        (["--n", "5:3"], "--n: empty range '5:3'"),
+        (["--h", "a,b"], "--h: expected comma-separated numbers"),
+        (["--h", "50"], "too few valid samples"),
+        (["--m", "0;0;0"], "--m: give one grid per input"),
+        (["--n", "1:2:3"], "--n: expected a range"),
+    ],
+)
+def test_search_cli_errors(csv_file, capsys, extra, match):
+    args = ["search", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
+            "--h", "1.5"]
+    for k in range(0, len(extra), 2):
+        if extra[k] in args:
+            args[args.index(extra[k]) + 1] = extra[k + 1]
+        else:
+            args += extra[k : k + 2]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert match in err and len(err.splitlines()) == 1

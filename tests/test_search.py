@@ -1,0 +1,148 @@
+import json
+import os
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+import mfmjax
+from mfmjax import ModulatingFunction, Signals, Structure
+from mfmjax._search import _chunk_jit
+from mfmjax.datasets import simulated_experiment, third_order_two_input
+
+HERE = os.path.dirname(__file__)
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    return simulated_experiment(third_order_two_input(), dt=0.01, n_samples=1500,
+                                x0=[0.1, 0.2, 0.3], noise_std=0.01, seed=4)
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return simulated_experiment(third_order_two_input(), dt=0.01, n_samples=1500,
+                                x0=[0.1, 0.2, 0.3])
+
+
+def _params(a, b):
+    return np.concatenate([np.asarray(a)] + [np.asarray(x) for x in b])
+
+
+def test_every_candidate_equals_identify(noisy):
+    # m_k = n (feed-through correction) and a delay grid included; same maths as identify,
+    # differing only in kernel padding and summation order: 1e-8 where well conditioned
+    res = mfmjax.search(noisy, n=(1, 3), N=(3,), M=(3, 4), h=(1.5,), m=[(0, 1, 3), (0,)],
+                        delays=[(0.0,), (0.0, 0.05)])
+    assert len(res) == 4 * (2 + 3)  # 4 groups (M x delays); n=1: m1 in {0,1}; n=3: {0,1,3}
+    for i in range(len(res)):
+        r = res.row(i)
+        sig = Signals(noisy.y, noisy.u, dt=0.01, intersample=("foh", "zoh"), delays=r["delays"])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mod = mfmjax.identify(sig, Structure(r["n"], r["m"]),
+                                  ModulatingFunction(r["N"], r["M"], r["h"]))
+        if float(mod.cond) < 1e12:
+            ref = _params(mod.a, mod.b)
+            got = _params(r["a"], r["b"])
+            assert np.max(np.abs(got - ref)) <= 1e-8 * np.max(np.abs(ref)), r
+        assert abs(r["J"] - float(mod.J_rel)) <= 1e-6 * float(mod.J_rel) + 1e-14
+        # E of the search equals the observer + simulation of the identified model
+        if r["status"] == "ok":
+            E = float(mfmjax.performance_index(mod, sig))
+            assert abs(r["E"] - E) <= 1e-6 * E + 1e-12
+
+
+def test_best_by_E_has_true_orders(clean):
+    res = mfmjax.search(clean, n=(1, 2, 3, 4), N=(4, 5), M=(4, 5), h=(1.5, 2.0),
+                        m=[(0, 1, 2), (0, 1, 2)])
+    best = res.row(0)
+    assert (best["n"], best["m"]) == (3, [1, 0])
+    model = res.best()
+    assert isinstance(model, mfmjax.Model) and model.n == 3
+    assert np.allclose(np.asarray(model.a), [1.0, 3.5, 3.5, 1.0], rtol=1e-4)
+    # the other scores rank sensibly too
+    for score in ("J", "fit", "aic", "bic"):
+        r = mfmjax.search(clean, n=(1, 2, 3), N=(4,), M=(4,), h=(2.0,), m=[(0, 1), (0,)],
+                          score=score)
+        assert r.row(0)["n"] == 3
+
+
+def test_one_compilation_for_many_chunks(noisy):
+    kw = dict(n=(1, 2), N=(3, 4), M=(3, 4), h=(1.0, 1.3, 1.7), m=[(0,), (0,)], chunk_size=2)
+    mfmjax.search(noisy, **kw)  # 12 groups -> 6 chunks
+    before = _chunk_jit._cached._cache_size()
+    calls = []
+    res = mfmjax.search(noisy, progress=lambda d, t: calls.append((d, t)), **kw)
+    assert _chunk_jit._cached._cache_size() == before
+    assert calls[-1] == (12, 12) and len(calls) == 6 and len(res) == 24
+
+
+def test_bad_candidate_is_flagged_not_fatal(clean):
+    u = np.asarray(clean.u).copy()
+    u[:, 1] = 1.0  # constant second input: no excitation
+    sig = Signals(clean.y, u, dt=0.01, intersample=("foh", "zoh"))
+    res = mfmjax.search(sig, n=(1, 2), N=(3,), M=(3,), h=(1.5,), m=[(0,), (0, 1)])
+    statuses = {res.row(i)["status"] for i in range(len(res))}
+    assert any("no_excitation" in s for s in statuses)
+    assert all(np.isfinite(res.columns["theta"]).all(axis=1) | (res.columns["status"] != 0))
+
+
+def test_exports(noisy, tmp_path):
+    res = mfmjax.search(noisy, n=(1, 2), N=(3,), M=(3,), h=(1.5,), m=[(0,), (0,)])
+    doc = json.loads(res.to_json(tmp_path / "r.json"))
+    assert doc["candidates"] == len(res) == len(doc["ranked"])
+    assert json.loads((tmp_path / "r.json").read_text())["ranked"][0]["rank"] == 1
+    pd = pytest.importorskip("pandas")
+    df = res.to_pandas()
+    assert isinstance(df, pd.DataFrame) and len(df) == len(res) and "fit" in df.columns
+    assert "rank" in res.table(3)
+
+
+@pytest.mark.parametrize(
+    "kw,match",
+    [
+        (dict(h=()), "h grid is empty"),
+        (dict(h=(1.0,), n=()), "n grid is empty"),
+        (dict(h=(1.0,), n=(4,), N=(3,), M=(3,)), "every candidate has N < n"),
+        (dict(h=(20.0,)), "too few valid samples"),
+        (dict(h=(-1.0,)), "h values must be finite and > 0"),
+        (dict(h=(1.0,), score="xyz"), "unknown score"),
+        (dict(h=(1.0,), m=[(0,)]), "m needs one list"),
+        (dict(h=(1.0,), delays=[(0.0,), (-1.0,)]), "delays must be >= 0"),
+        (dict(h=(1.0,), validate=(0.0, 100.0)), "validate window"),
+    ],
+)
+def test_bad_grids(noisy, kw, match):
+    with pytest.raises(ValueError, match=match):
+        mfmjax.search(noisy, **kw)
+
+
+def test_sharded_equals_single_device(noisy, tmp_path):
+    kw = dict(n=(1, 2, 3), N=(3, 4), M=(3, 4), h=(1.2, 1.7), m=[(0, 1), (0,)], chunk_size=4)
+    single = mfmjax.search(noisy, **kw)
+    np.save(tmp_path / "y.npy", np.asarray(noisy.y))
+    np.save(tmp_path / "u.npy", np.asarray(noisy.u))
+    script = f"""
+import json, numpy as np, jax
+import mfmjax
+assert len(jax.devices()) == 4, jax.devices()
+sig = mfmjax.Signals(np.load({str(tmp_path / 'y.npy')!r}), np.load({str(tmp_path / 'u.npy')!r}),
+                     dt=0.01, intersample=("foh", "zoh"))
+res = mfmjax.search(sig, **{kw!r})
+print(json.dumps(res.to_dict()))
+"""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env,
+                         timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    sharded = json.loads(out.stdout.strip().splitlines()[-1])["ranked"]
+    ref = single.to_dict()["ranked"]
+    assert len(sharded) == len(ref)
+    for a, b in zip(sharded, ref):
+        assert (a["n"], a["m"], a["N"], a["M"], a["h"]) == (b["n"], b["m"], b["N"], b["M"], b["h"])
+        # same program on another device layout: equal to rounding of the reductions
+        assert np.allclose(np.concatenate([a["a"]] + a["b"]), np.concatenate([b["a"]] + b["b"]),
+                           rtol=1e-10, atol=0)
