@@ -215,6 +215,7 @@ class _Static(eqx.Module):
     v_start: int = eqx.field(static=True)
     v_length: int = eqx.field(static=True)
     ob_length: int = eqx.field(static=True)
+    simulate: bool = eqx.field(static=True)
 
 
 def _padded_state_space(a, bs, n, K_all):
@@ -286,10 +287,16 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs):
         terms = jnp.sum(theta**2 * jnp.diagonal(G))
         J_rel = jnp.sqrt(quad / jnp.where(terms > 0, terms, 1.0))
         J_raw = h ** (N + M + 1) * jnp.sqrt(quad)
+        out = dict(theta=theta, offset=norm[p - 1] if sig.offset else jnp.asarray(0.0), J=J_rel,
+                   J_raw=J_raw, cond=cond)
         # validation: observer initial state + simulation on the validation window
         a = jnp.where(jnp.arange(n_max + 1) <= n, norm[: n_max + 1], 0.0)
         bs = [jnp.zeros(n_max + 1).at[: m_max[k] + 1].set(norm[off[k] : off[k] + m_max[k] + 1])
               for k in range(K)]
+        out.update(a=a, b=jnp.stack(bs, 0) if K else jnp.zeros((0, n_max + 1)))
+        if not static.simulate:  # equation error only (score J)
+            nan = jnp.asarray(jnp.nan)
+            return dict(out, E=nan, fit=nan, aic=nan, bic=nan, status=status.astype(jnp.int32))
         modes, dl = list(sig.intersample), [delays[k] for k in range(K)]
         u_cols = [sig.u[:, k] for k in range(K)]
         if sig.offset:
@@ -309,9 +316,7 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs):
         Nv = static.v_length
         mse = obs.E / (Nv * sig.dt)
         loglik = Nv * jnp.log(jnp.maximum(mse, 1e-300))
-        return dict(theta=theta, a=a, b=jnp.stack(bs[:K], 0) if K else jnp.zeros((0, n_max + 1)),
-                    offset=norm[p - 1] if sig.offset else jnp.asarray(0.0), J=J_rel, J_raw=J_raw,
-                    cond=cond, E=obs.E, fit=fit, aic=loglik + 2 * k_par,
+        return dict(out, E=obs.E, fit=fit, aic=loglik + 2 * k_par,
                     bic=loglik + k_par * jnp.log(Nv), status=status.astype(jnp.int32))
 
     def group_all(N, M, h, delays):
@@ -345,6 +350,7 @@ def search(
     observer_window: float | None = None,
     eta=None,
     chunk_size: int = 16,
+    simulate: bool = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> SearchResult:
     r"""Identify and score every feasible candidate of a grid, batched (see module docstring).
@@ -362,6 +368,8 @@ def search(
       data) go to the candidate with fewer parameters.
     - `validate`: (t0, t1) window for E and fit (default: the whole record); the state at its
       start comes from the initial-state observer over `observer_window` (default: the window).
+    - `simulate`: False skips the observer + simulation (E, fit, AIC, BIC are NaN; only the
+      `"J"` score is available): the pure equation-error search.
     - `chunk_size`: groups of (N, M, h, delays) per compiled chunk (rounded up to a multiple of
       the device count); `progress(done, total)` is called after each chunk.
 
@@ -371,6 +379,8 @@ def search(
         raise TypeError("search(): signals must be a Signals")
     if score not in SCORES:
         raise ValueError(f"search(): unknown score {score!r}; use one of {SCORES}")
+    if not simulate and score != "J":
+        raise ValueError(f"search(): score {score!r} needs simulate=True (or use score='J')")
     K = signals.n_inputs
     n_grid = _values(n, "n")
     N_grid = [float(v) for v in _values(N, "N")]
@@ -406,9 +416,10 @@ def search(
     if min(N_grid) < 1 or min(M_grid) < 1:
         raise ValueError("search(): N and M must be >= 1")
     combos = list(itertools.product(N_grid, M_grid, h_grid, itertools.product(*delays)))
-    feasible = [(i, si) for i, (Nv, Mv, _, _) in enumerate(combos)
-                for si, (ns, _) in enumerate(structs) if Nv >= ns and Mv >= ns]
-    if not feasible:
+    n_of = np.asarray([st[0] for st in structs])
+    NM_min = np.asarray([min(c[0], c[1]) for c in combos])
+    used = np.flatnonzero(NM_min >= n_of.min())  # groups with at least one feasible structure
+    if used.size == 0:
         raise ValueError("search(): every candidate has N < n or M < n; widen N, M or lower n")
     h_max = max(h_grid)
     delay_max = max((max(dk) for dk in delays), default=0.0)
@@ -441,7 +452,7 @@ def search(
     if eta.shape != (p,):
         raise ValueError(f"search(): eta must have {p} entries (padded layout)")
     static = _Static(n_max, m_max, ft_inputs, kernel_length(h_max + delay_max, dt), h_max,
-                     delay_max, v0, v_len, ob)
+                     delay_max, v0, v_len, ob, bool(simulate))
     S = len(structs)
     struct_arr = {
         "n": jnp.asarray([s[0] for s in structs], dtype=jnp.int32),
@@ -450,15 +461,13 @@ def search(
         "k": jnp.asarray([s[0] + sum(mk + 1 for mk in s[1]) + int(signals.offset)
                           for s in structs], dtype=jnp.float64),
     }
-    # only groups with at least one feasible structure are computed
-    used = sorted({i for i, _ in feasible})
     mesh = _mesh()
     n_dev = mesh.devices.size
     chunk = max(n_dev, int(math.ceil(chunk_size / n_dev)) * n_dev)
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("c"))
     outs, t_compile, t_run = [], 0.0, 0.0
     for c0 in range(0, len(used), chunk):
-        idx = used[c0 : c0 + chunk]
+        idx = list(used[c0 : c0 + chunk])
         idx = idx + [idx[-1]] * (chunk - len(idx))  # pad the last chunk: same shapes
         g = {
             "N": np.asarray([combos[i][0] for i in idx]),
@@ -470,15 +479,20 @@ def search(
         t0 = time.perf_counter()
         res = _chunk_jit(signals, static, eta, g, struct_arr)
         res = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(res))
+        real = idx[: min(chunk, len(used) - c0)]
+        keep = NM_min[real][:, None] >= n_of[None, :]  # (groups, structures): N, M >= n
+        gi, si = np.nonzero(keep)
+        res = {key: val[gi, si] for key, val in res.items()}
+        res["group"], res["struct"] = np.asarray(real)[gi], si
         dt_chunk = time.perf_counter() - t0
         if c0 == 0:
             t_compile = dt_chunk
         else:
             t_run += dt_chunk
-        outs.append((idx[: min(chunk, len(used) - c0)], res))
+        outs.append(res)
         if progress is not None:
             progress(min(c0 + chunk, len(used)), len(used))
-    return _collect(outs, combos, structs, feasible, signals, static, score, t_compile, t_run)
+    return _collect(outs, combos, structs, signals, static, score, t_compile, t_run)
 
 
 def _mask(s, n_max, m_max, offset):
@@ -489,27 +503,14 @@ def _mask(s, n_max, m_max, offset):
     return mask + ([True] if offset else [])
 
 
-def _collect(outs, combos, structs, feasible, signals, static, score, t_compile, t_run):
-    ok_pairs = set(feasible)
-    rows = {key: [] for key in ("group", "struct")}
-    arrays: dict[str, list] = {}
-    for idx, res in outs:
-        for gi, gidx in enumerate(idx):
-            for si in range(len(structs)):
-                if (gidx, si) not in ok_pairs:
-                    continue
-                rows["group"].append(gidx)
-                rows["struct"].append(si)
-                for key, val in res.items():
-                    arrays.setdefault(key, []).append(val[gi, si])
-    cols = {key: np.stack(v) for key, v in arrays.items()}
-    g = rows["group"]
-    cols["n"] = np.asarray([structs[s][0] for s in rows["struct"]])
-    cols["m"] = np.asarray([structs[s][1] for s in rows["struct"]]).reshape(len(g), -1)
-    cols["N"] = np.asarray([combos[i][0] for i in g])
-    cols["M"] = np.asarray([combos[i][1] for i in g])
-    cols["h"] = np.asarray([combos[i][2] for i in g])
-    cols["delays"] = np.asarray([combos[i][3] for i in g]).reshape(len(g), -1)
+def _collect(outs, combos, structs, signals, static, score, t_compile, t_run):
+    cols = {key: np.concatenate([o[key] for o in outs]) for key in outs[0]}
+    g, st = cols.pop("group"), cols.pop("struct")
+    grid = np.asarray([(c[0], c[1], c[2]) for c in combos])
+    cols["n"] = np.asarray([s[0] for s in structs])[st]
+    cols["m"] = np.asarray([s[1] for s in structs]).reshape(len(structs), -1)[st]
+    cols["N"], cols["M"], cols["h"] = grid[g, 0], grid[g, 1], grid[g, 2]
+    cols["delays"] = np.asarray([c[3] for c in combos]).reshape(len(combos), -1)[g]
     key = {"E": cols["E"], "J": cols["J"], "fit": -cols["fit"], "aic": cols["aic"],
            "bic": cols["bic"]}[score]
     key = np.where(np.isfinite(key), key, np.inf)
@@ -517,8 +518,7 @@ def _collect(outs, combos, structs, feasible, signals, static, score, t_compile,
         yv = np.asarray(signals.y)[static.v_start : static.v_start + static.v_length]
         q = E_TIE_RTOL * float(np.sum(yv**2)) * signals.dt + 1e-300
         key = np.where(np.isfinite(key), np.floor(key / q), np.inf)
-    n_par = np.asarray([structs[s][0] + sum(mk + 1 for mk in structs[s][1])
-                        for s in rows["struct"]])
+    n_par = np.asarray([s[0] + sum(mk + 1 for mk in s[1]) for s in structs])[st]
     bad = cols["status"] != 0
     rank = np.lexsort((n_par, key, bad))  # status, then score, then fewer parameters
     return SearchResult(

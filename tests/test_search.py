@@ -146,3 +146,13 @@ print(json.dumps(res.to_dict()))
         # same program on another device layout: equal to rounding of the reductions
         assert np.allclose(np.concatenate([a["a"]] + a["b"]), np.concatenate([b["a"]] + b["b"]),
                            rtol=1e-10, atol=0)
+
+
+def test_equation_error_only_mode(noisy):
+    kw = dict(n=(1, 2, 3), N=(4,), M=(4,), h=(1.5,), m=[(0, 1), (0,)])
+    full = mfmjax.search(noisy, score="J", **kw)
+    fast = mfmjax.search(noisy, score="J", simulate=False, **kw)
+    assert np.array_equal(full.columns["theta"], fast.columns["theta"])
+    assert np.all(np.isnan(fast.columns["E"]))
+    with pytest.raises(ValueError, match="needs simulate=True"):
+        mfmjax.search(noisy, score="E", simulate=False, **kw)
