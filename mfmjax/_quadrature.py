@@ -51,9 +51,43 @@ def kernel_weights(mf: ModulatingFunction, i: int, dt: float, rule: str, delay, 
     `i`, `dt`, `rule`, `length` are static; `mf.h`, `mf.N`, `mf.M` and `delay` may be traced
     (differentiable). Weights beyond the support are exactly 0.
     """
+    return profile_weights(lambda r: phi_scaled(r, mf.N, mf.M, i)[None], mf.h, dt, rule, delay,
+                           length)[0]
+
+
+def legendre_weights(degree: int, h, dt: float, rule: str, delay, length: int):
+    r"""Weights (degree+1, length) of the shifted Legendre polynomials $P_q(2r - 1)$, $q \le$
+    `degree`, as profiles on $[0, 1]$: the basis in which every $p_i$ of every (N, M) with
+    $N + M \le$ `degree` is an exact combination (`legendre_coefficients`)."""
+    return profile_weights(lambda r: shifted_legendre(r, degree), h, dt, rule, delay, length)
+
+
+def shifted_legendre(r, degree: int):
+    """P_q(2r - 1) for q = 0..degree, stacked on a new leading axis (three-term recurrence)."""
+    x = 2.0 * jnp.asarray(r) - 1.0
+    out = [jnp.ones_like(x), x]
+    for q in range(1, degree):
+        out.append(((2 * q + 1) * x * out[q] - q * out[q - 1]) / (q + 1))
+    return jnp.stack(out[: degree + 1])
+
+
+def legendre_coefficients(N: int, M: int, i: int, degree: int) -> np.ndarray:
+    r"""$c_q$ with $p_i(r) = \sum_q c_q P_q(2r-1)$ (exact projection by Gauss-Legendre)."""
+    x, w = np.polynomial.legendre.leggauss(degree + 2)
+    r = (x + 1) / 2
+    vals = np.asarray(phi_scaled(jnp.asarray(r), N, M, i))
+    basis = np.asarray(shifted_legendre(jnp.asarray(r), degree))
+    return (2 * np.arange(degree + 1) + 1) * (basis @ (w * vals)) / 2
+
+
+def profile_weights(profile, h, dt: float, rule: str, delay, length: int):
+    r"""Weights (Q, length) of a batch of profiles $f_q(r)$ on $[0, 1]$ (see module doc):
+    $w_{q,l} = \frac1h \int_\tau^{\tau+h} \beta_l(s) f_q((s-\tau)/h)\,ds$.
+
+    `profile(r)` maps an array of r to (Q, *r.shape); it is exact whenever the profiles are
+    polynomials of degree <= 20 (12-point Gauss per cell against a cubic at most)."""
     if rule not in RULES:
         raise ValueError(f"kernel_weights(): rule must be one of {RULES} (got {rule!r})")
-    h = mf.h
     tau = jnp.asarray(delay, dtype=jnp.float64)
     n_cells = length - 1
     cell = jnp.arange(n_cells, dtype=jnp.float64)
@@ -63,7 +97,7 @@ def kernel_weights(mf: ModulatingFunction, i: int, dt: float, rule: str, delay, 
     gx = jnp.asarray(_GAUSS_X)
     gw = jnp.asarray(_GAUSS_W)
     s = 0.5 * (hi + lo)[:, None] + half[:, None] * gx[None, :]  # (cells, gauss)
-    kern = phi_scaled((s - tau) / h, mf.N, mf.M, i) * (half[:, None] * gw[None, :]) / h
+    kern = profile((s - tau) / h) * (half[:, None] * gw[None, :]) / h  # (Q, cells, gauss)
     xi = s / dt  # position in samples
     if rule == "zoh":
         idx = (cell + 1).astype(jnp.int32)[:, None]
@@ -86,9 +120,11 @@ def kernel_weights(mf: ModulatingFunction, i: int, dt: float, rule: str, delay, 
             ],
             axis=-1,
         )
-    contrib = jnp.sum(kern[..., None] * basis, axis=1)  # (cells, nodes)
+    contrib = jnp.einsum("qcg,cgn->qcn", kern, basis)  # (Q, cells, nodes)
     idx = jnp.minimum(idx, length - 1)
-    return jnp.zeros(length, dtype=jnp.float64).at[idx.reshape(-1)].add(contrib.reshape(-1))
+    Q = contrib.shape[0]
+    out = jnp.zeros((Q, length), dtype=jnp.float64)
+    return out.at[:, idx.reshape(-1)].add(contrib.reshape(Q, -1))
 
 
 def modulate(x, weights):

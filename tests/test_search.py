@@ -71,13 +71,14 @@ def test_best_by_E_has_true_orders(clean):
 
 
 def test_one_compilation_for_many_chunks(noisy):
-    kw = dict(n=(1, 2), N=(3, 4), M=(3, 4), h=(1.0, 1.3, 1.7), m=[(0,), (0,)], chunk_size=2)
-    mfmjax.search(noisy, **kw)  # 12 groups -> 6 chunks
+    kw = dict(n=(1, 2), N=(3, 4), M=(3, 4), h=(1.0, 1.2, 1.3, 1.5, 1.7), m=[(0,), (0,)],
+              chunk_size=2)
+    mfmjax.search(noisy, **kw)  # 5 (h, delays) settings -> 3 chunks
     before = _chunk_jit._cached._cache_size()
     calls = []
     res = mfmjax.search(noisy, progress=lambda d, t: calls.append((d, t)), **kw)
     assert _chunk_jit._cached._cache_size() == before
-    assert calls[-1] == (12, 12) and len(calls) == 6 and len(res) == 24
+    assert calls[-1] == (5, 5) and len(calls) == 3 and len(res) == 5 * 4 * 2
 
 
 def test_bad_candidate_is_flagged_not_fatal(clean):
