@@ -396,6 +396,11 @@ def _validate(sig: Signals, static: _Static, c):
 _chunk_jit = eqx.filter_jit(_chunk)
 
 
+def _place(x: np.ndarray, sharding):
+    """A global array split over the mesh (works with one or several processes)."""
+    return jax.make_array_from_callback(x.shape, sharding, lambda idx: x[idx])
+
+
 def _mesh():
     devices = jax.devices()
     return jax.make_mesh((len(devices),), ("c",), axis_types=(jax.sharding.AxisType.Auto,))
@@ -570,10 +575,14 @@ def search(
             "h": np.asarray([hd[i][0] for i in idx]),
             "delays": np.asarray([hd[i][1] for i in idx], dtype=np.float64).reshape(chunk, K),
         }
-        g = {k: jax.device_put(v, sharding) for k, v in g.items()}
+        g = {k: _place(v, sharding) for k, v in g.items()}
         t0 = time.perf_counter()
-        res = _chunk_jit(signals, static, eta, g, struct_arr, nm)
-        res = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(res))
+        res = jax.block_until_ready(_chunk_jit(signals, static, eta, g, struct_arr, nm))
+        if jax.process_count() > 1:  # multi-host: every process gets every candidate
+            from jax.experimental import multihost_utils
+
+            res = multihost_utils.process_allgather(res, tiled=True)
+        res = jax.tree_util.tree_map(np.asarray, res)
         gi, ni, si = np.nonzero(np.broadcast_to(keep_nm_s, (real, NMc, S)))
         res = {key: val[gi, ni, si] for key, val in res.items()}
         res["group"], res["struct"] = (np.asarray(idx)[gi] * NMc + ni), si
