@@ -163,7 +163,7 @@ def test_equation_error_only_mode(noisy):
 def test_two_process_loopback_equals_single(tmp_path):
     # multi-host use: jax.distributed over two local processes (one CPU device each)
     script = tmp_path / "worker.py"
-    script.write_text(f"""
+    script.write_text("""
 import sys, json, jax
 jax.distributed.initialize(coordinator_address="127.0.0.1:" + sys.argv[2], num_processes=2,
                            process_id=int(sys.argv[1]))
@@ -172,7 +172,7 @@ from mfmjax.datasets import simulated_experiment, third_order_two_input
 sig = simulated_experiment(third_order_two_input(), dt=0.01, n_samples=800, noise_std=0.01,
                            seed=4)
 res = mfmjax.search(sig, n=(1, 2, 3), N=(3, 4), M=(3, 4), h=(1.2, 1.7), m=[(0, 1), (0,)])
-print("RESULT" + json.dumps({{"devices": len(jax.devices()), "ranked": res.to_dict()["ranked"]}}))
+print("RESULT" + json.dumps({"devices": len(jax.devices()), "ranked": res.to_dict()["ranked"]}))
 """)
     import socket
 
