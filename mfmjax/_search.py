@@ -50,7 +50,7 @@ from ._quadrature import (
 from ._signals import Signals
 from ._simulate import forced_terms
 from ._solve import DEAD_COLUMN_RTOL, constrained_solve, solve_status
-from ._statespace import StateSpace
+from ._statespace import realisation
 from ._status import Status, describe
 from ._structure import Structure
 
@@ -232,24 +232,6 @@ class _Static(eqx.Module):
     batch: int = eqx.field(static=True)  # candidates per vmapped validation batch
 
 
-def _padded_state_space(a, bs, n):
-    """Eq. (18) for a model of (traced) order n <= n_max, zero-padded to n_max states."""
-    n_max = a.shape[0] - 1
-    i = jnp.arange(n_max)
-    live = i < n
-    A = jnp.where((i[:, None] == i[None, :] + 1) & live[:, None], 1.0, 0.0)
-    A = jnp.where((i[None, :] == n - 1) & live[:, None], -a[:n_max][:, None], A)
-    cols, ds = [], []
-    for bk in bs:  # bk padded to n_max + 1
-        d = bk[n]
-        cols.append(jnp.where(live, bk[:n_max] - d * a[:n_max], 0.0))
-        ds.append(d)
-    B = jnp.stack(cols, axis=1) if cols else jnp.zeros((n_max, 0))
-    D = jnp.stack(ds)[None, :] if ds else jnp.zeros((1, 0))
-    C = jnp.where(i == n - 1, 1.0, 0.0)[None, :]
-    return StateSpace(A, B, C, D), live
-
-
 def _fft_modulate(x, W):
     """Sliding convolutions of x (T,) with every row of W (Q, L): (T, Q), by real FFT."""
     T, L = x.shape[0], W.shape[1]
@@ -381,7 +363,7 @@ def _validate(sig: Signals, static: _Static, c):
         modes.append("zoh")
         dl.append(jnp.asarray(0.0))
         u_cols.append(jnp.ones(sig.n_samples))
-    ss, live = _padded_state_space(c["a"], bs, c["n"])
+    ss, live = realisation(c["a"], bs, c["n"])
     drive, direct = forced_terms(ss, u_cols, modes, dl, sig.dt, sig.n_samples)
     obs = _observe_forced((ss, drive, direct), sig.y, sig.dt, static.v_start, static.v_length,
                           static.ob_length, live)

@@ -28,19 +28,29 @@ def state_space(model: Model) -> StateSpace:
     r"""Eq. (18): the observable canonical realisation of `model`."""
     n = model.n
     a = model.a / model.a[n]
-    A = jnp.zeros((n, n)).at[jnp.arange(1, n), jnp.arange(n - 1)].set(1.0)
-    A = A.at[:, n - 1].set(-a[:n])
-    cols, ds = [], []
     bs = list(model.b) + ([jnp.reshape(model.offset, (1,))] if model.has_offset else [])
+    padded = [jnp.zeros(n + 1).at[: bk.shape[0]].set(bk / model.a[n]) for bk in bs]
+    return realisation(a, padded, n)[0]
+
+
+def realisation(a, bs, n):
+    r"""Eq. (18) from $a$ ($a_n = 1$) and numerators $b_k$, all zero-padded to length
+    $n_{max}+1$, for an order $n \le n_{max}$ that may be traced (batched searches): the states
+    beyond $n$ are zero rows/columns. **Returns:** (StateSpace, live-state mask)."""
+    n_max = a.shape[0] - 1
+    i = jnp.arange(n_max)
+    live = i < n
+    A = jnp.where((i[:, None] == i[None, :] + 1) & live[:, None], 1.0, 0.0)
+    A = jnp.where((i[None, :] == n - 1) & live[:, None], -a[:n_max][:, None], A)
+    cols, ds = [], []
     for bk in bs:
-        full = jnp.zeros(n + 1).at[: bk.shape[0]].set(bk / model.a[n])
-        d = full[n]
-        cols.append(full[:n] - d * a[:n])
+        d = bk[n]  # D_k = b_kn when m_k = n (else 0): the strictly proper remainder goes to B
+        cols.append(jnp.where(live, bk[:n_max] - d * a[:n_max], 0.0))
         ds.append(d)
-    B = jnp.stack(cols, axis=1) if cols else jnp.zeros((n, 0))
+    B = jnp.stack(cols, axis=1) if cols else jnp.zeros((n_max, 0))
     D = jnp.stack(ds)[None, :] if ds else jnp.zeros((1, 0))
-    C = jnp.zeros((1, n)).at[0, n - 1].set(1.0)
-    return StateSpace(A, B, C, D)
+    C = jnp.where(i == n - 1, 1.0, 0.0)[None, :]
+    return StateSpace(A, B, C, D), live
 
 
 def to_scipy(model: Model):
