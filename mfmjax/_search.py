@@ -28,6 +28,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -352,20 +353,27 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs, nm):
     return dict(out, status=status, **val)
 
 
-def _validate(sig: Signals, static: _Static, c):
-    """E (eq. 17), fit and information criteria of one candidate on the validation window, the
-    simulation started from the initial-state observer (eq. 14) of a zero-padded realisation."""
-    K = sig.n_inputs
+def padded_forced(sig: Signals, c):
+    """Zero-padded realisation (eq. 18) of candidate `c` (keys a, b, offset, n, delays) and its
+    exact forced response to `sig`'s inputs: ((ss, drive, direct), live-state mask)."""
+    K, n_max = sig.n_inputs, c["a"].shape[0] - 1
     bs, modes, dl, u_cols = [c["b"][k] for k in range(K)], list(sig.intersample), [
         c["delays"][k] for k in range(K)], [sig.u[:, k] for k in range(K)]
     if sig.offset:
-        bs.append(jnp.zeros(static.n_max + 1).at[0].set(c["offset"]))
+        bs.append(jnp.zeros(n_max + 1).at[0].set(c["offset"]))
         modes.append("zoh")
         dl.append(jnp.asarray(0.0))
         u_cols.append(jnp.ones(sig.n_samples))
     ss, live = realisation(c["a"], bs, c["n"])
     drive, direct = forced_terms(ss, u_cols, modes, dl, sig.dt, sig.n_samples)
-    obs = _observe_forced((ss, drive, direct), sig.y, sig.dt, static.v_start, static.v_length,
+    return (ss, drive, direct), live
+
+
+def _validate(sig: Signals, static: _Static, c):
+    """E (eq. 17), fit and information criteria of one candidate on the validation window, the
+    simulation started from the initial-state observer (eq. 14) of a zero-padded realisation."""
+    forced, live = padded_forced(sig, c)
+    obs = _observe_forced(forced, sig.y, sig.dt, static.v_start, static.v_length,
                           static.ob_length, live)
     status = obs.status | jnp.where(hurwitz(c["a"]), 0, Status.UNSTABLE)
     yv = jax.lax.dynamic_slice_in_dim(sig.y, static.v_start, static.v_length)
@@ -428,6 +436,33 @@ def search(
 
     **Returns:** a `SearchResult`.
     """
+    plan = _plan(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score,
+                 validate=validate, observer_window=observer_window, eta=eta,
+                 chunk_size=chunk_size, simulate=simulate)
+    return _run(plan, signals, progress)
+
+
+class _Plan(NamedTuple):
+    """A checked grid, compiled once: everything but the data (`search` = `_run(_plan(..))`)."""
+
+    static: _Static
+    eta: jax.Array
+    structs: list
+    struct_arr: dict
+    nm: dict
+    hd: list
+    combos: list
+    keep_nm_s: np.ndarray
+    chunk: int
+    sharding: jax.sharding.NamedSharding
+    score: str
+    n_samples: int
+    n_inputs: int
+
+
+def _plan(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
+          chunk_size, simulate) -> _Plan:
+    """Check the grid against the record's shape and build the static parts of `search`."""
     if not isinstance(signals, Signals):
         raise TypeError("search(): signals must be a Signals")
     if score not in SCORES:
@@ -541,13 +576,22 @@ def search(
         "k": jnp.asarray([s[0] + sum(mk + 1 for mk in s[1]) + int(signals.offset)
                           for s in structs], dtype=jnp.float64),
     }
-    NMc = len(nm_pairs)
     nm_min = np.asarray([min(a, b) for a, b in nm_pairs])
     keep_nm_s = nm_min[:, None] >= n_of[None, :]  # (NM, S): N, M >= n
     mesh = _mesh()
     n_dev = mesh.devices.size
     chunk = max(n_dev, int(math.ceil(chunk_size / n_dev)) * n_dev)
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("c"))
+    return _Plan(static, eta, structs, struct_arr, nm, hd, combos, keep_nm_s, chunk, sharding,
+                 score, signals.n_samples, K)
+
+
+def _run(plan: _Plan, signals: Signals, progress=None) -> SearchResult:
+    """Evaluate a plan's grid on `signals` (same length and layout as the plan's record)."""
+    static, hd, chunk, K = plan.static, plan.hd, plan.chunk, plan.n_inputs
+    if (signals.n_samples, signals.n_inputs) != (plan.n_samples, K):
+        raise ValueError("search: the signals do not match the plan's record length and inputs")
+    NMc, S = plan.keep_nm_s.shape
     outs, times = [], []
     for c0 in range(0, len(hd), chunk):
         idx = list(range(c0, min(c0 + chunk, len(hd))))
@@ -557,15 +601,16 @@ def search(
             "h": np.asarray([hd[i][0] for i in idx]),
             "delays": np.asarray([hd[i][1] for i in idx], dtype=np.float64).reshape(chunk, K),
         }
-        g = {k: _place(v, sharding) for k, v in g.items()}
+        g = {k: _place(v, plan.sharding) for k, v in g.items()}
         t0 = time.perf_counter()
-        res = jax.block_until_ready(_chunk_jit(signals, static, eta, g, struct_arr, nm))
+        res = jax.block_until_ready(
+            _chunk_jit(signals, static, plan.eta, g, plan.struct_arr, plan.nm))
         if jax.process_count() > 1:  # multi-host: every process gets every candidate
             from jax.experimental import multihost_utils
 
             res = multihost_utils.process_allgather(res, tiled=True)
         res = jax.tree_util.tree_map(np.asarray, res)
-        gi, ni, si = np.nonzero(np.broadcast_to(keep_nm_s, (real, NMc, S)))
+        gi, ni, si = np.nonzero(np.broadcast_to(plan.keep_nm_s, (real, NMc, S)))
         res = {key: val[gi, ni, si] for key, val in res.items()}
         res["group"], res["struct"] = (np.asarray(idx)[gi] * NMc + ni), si
         times.append(time.perf_counter() - t0)
@@ -575,7 +620,7 @@ def search(
     # the first chunk compiles: its excess over a typical chunk is the compile time
     typical = float(np.median(times[1:])) if len(times) > 1 else 0.0
     t_compile, t_run = max(times[0] - typical, 0.0), sum(times) - max(times[0] - typical, 0.0)
-    return _collect(outs, combos, structs, signals, static, score, t_compile, t_run)
+    return _collect(outs, plan.combos, plan.structs, signals, static, plan.score, t_compile, t_run)
 
 
 def _mask(s, n_max, m_max, offset):
