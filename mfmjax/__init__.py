@@ -8,6 +8,7 @@ import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
 
+from . import online as online  # noqa: E402
 from ._gram import gram as gram  # noqa: E402
 from ._gram import modulated_signals as modulated_signals  # noqa: E402
 from ._identify import identify as identify  # noqa: E402
@@ -23,6 +24,10 @@ from ._observers import initial_state as initial_state  # noqa: E402
 from ._observers import moving_final_states as moving_final_states  # noqa: E402
 from ._observers import observe as observe  # noqa: E402
 from ._observers import performance_index as performance_index  # noqa: E402
+from ._online import OnlineConfig as OnlineConfig  # noqa: E402
+from ._online import OnlineIdentifier as OnlineIdentifier  # noqa: E402
+from ._online import OnlineOutputs as OnlineOutputs  # noqa: E402
+from ._online import OnlineState as OnlineState  # noqa: E402
 from ._persist import load_model as load_model  # noqa: E402
 from ._persist import save_model as save_model  # noqa: E402
 from ._quadrature import kernel_weights as kernel_weights  # noqa: E402

@@ -68,3 +68,61 @@ def third_order_two_input() -> Model:
     return Model.from_coefficients(
         [1.0, 3.5, 3.5, 1.0], [[1.0, 0.5], [0.8]], intersample=("foh", "zoh")
     )
+
+
+def switching_plant() -> tuple[Model, Model]:
+    """Two 2nd-order, 2-input plants (foh, zoh inputs) for the on-line identifier's tests:
+    poles -0.04, -0.05, then -0.06 +- 0.02j (time constants 15-25 s at 1 s sampling)."""
+    first = Model.from_coefficients([0.002, 0.09, 1.0], [[0.004], [0.001, 0.02]],
+                                    intersample=("foh", "zoh"))
+    second = Model.from_coefficients([0.004, 0.12, 1.0], [[0.010], [0.003, 0.01]],
+                                     intersample=("foh", "zoh"))
+    return first, second
+
+
+def switching_experiment(
+    models=None, *, interval: int = 250, n_intervals: int = 40, quiet=(0, 1, 16, 17, 18),
+    switches=(16,), noise_std: float = 0.0, seed: int = 0,
+):
+    """A plant that moves between known LTI models at known operating points (1 s sampling).
+
+    Intervals listed in `quiet` have constant (zero) inputs, so the plant settles there (an
+    operating point); the others carry slow multisines on input 1 (foh) and held random levels
+    on input 2 (zoh). At the start of each interval in `switches` the plant becomes the next
+    model of `models`, its state carried over (the output stays continuous).
+
+    **Returns:** (t (T,), y (T,), u (T, 2), switch times).
+    """
+    import jax.numpy as jnp
+
+    from .._simulate import simulate_status
+
+    models = list(models or switching_plant())
+    if len(switches) != len(models) - 1:
+        raise ValueError("switching_experiment(): need len(models) - 1 switches")
+    if any(not 0 < s < n_intervals for s in switches):
+        raise ValueError("switching_experiment(): switches must lie inside the n_intervals")
+    rng = np.random.default_rng(seed)
+    S, T = interval, interval * n_intervals
+    t = np.arange(T, dtype=np.float64)
+    u = np.zeros((T, 2))
+    for j in range(n_intervals):
+        if j in quiet:
+            continue
+        sl = slice(j * S, (j + 1) * S)
+        f = rng.uniform(1 / 400, 1 / 150, 2)
+        u[sl, 0] = sum(np.sin(2 * np.pi * fi * (t[sl] - t[sl][0])) for fi in f)
+        u[sl, 1] = 0.3 * np.repeat(rng.normal(size=S // 50 + 1), 50)[:S]
+    edges = [0] + [s * S for s in switches] + [T]
+    x = jnp.zeros(models[0].n)
+    ys = []
+    for i, model in enumerate(models):
+        a, b = edges[i], edges[i + 1]
+        # one sample more to carry the state to the switch (same A, B realisation form)
+        y, xs, _ = simulate_status(model, u[a : min(b + 1, T)], x, 1.0)
+        ys.append(np.asarray(y[: b - a]))
+        x = xs[-1] if b < T else x
+    y = np.concatenate(ys)
+    if noise_std:
+        y = y + noise_std * rng.standard_normal(T)
+    return t, y, u, [float(s * S) for s in switches]

@@ -1,0 +1,664 @@
+r"""On-line adaptive identification and output prediction: the paper's Algorithm 1.
+
+An explicit-state machine (`method.md` section 8): `init(config) -> OnlineState` and
+`update(state, t, y, u) -> (OnlineState, OnlineOutputs)`, fed chunks of any size. Time is cut
+into intervals of width `interval` (T); when an interval closes:
+
+1. **Statistics**: the interval is *valid* if all its samples are finite; *steady* if the
+   variance of the output and of every input over it is below a threshold (default: `steady_rel`
+   times the variance of that signal over all valid intervals so far, a data-scaled default;
+   or absolute `steady_var`). An **operating point** is the onset of a steady run (a steady
+   interval after a non-steady one, or the first interval); its time is the interval's start.
+   The input-output correlation of the interval is $\max_k |\rho(y, u_k(t - \tau_k))|$.
+2. **Prediction** (Step 5 of the previous interval): the current model's final state at the
+   previous interval end comes from the final-state observer over `T_obfin` (eq. 15), and the
+   output of the interval just closed is simulated from it with the measured inputs. It uses no
+   output sample after the previous interval end; it is emitted when the interval closes.
+3. **Step 3** (no model yet, an operating point in the last `n_start` intervals, at least
+   `n_start` intervals seen, the correlation test passed in one of them): the batched search over
+   the candidate set on the last `n_start` intervals; the candidate with least E (eq. 17, simulated
+   from its initial-state-observer estimate over `T_obinit`) becomes model 1.
+4. **Step 4** (a model exists and an operating point lies in the last `n_reident` intervals):
+   E_current of the current model and E of every candidate identified on the last `n_reident`
+   intervals (same window, each from its own initial-state observer); the least is E_reident, and
+   the model is replaced if E_reident < E_current.
+
+Every step is recorded (`OnlineOutputs.events`), every accepted model too (`OnlineOutputs.models`,
+the columns of the paper's Tables 2-5). Memory is bounded: a ring buffer of
+max(n_start T, n_reident T, T_obfin + T + max delay) samples and per-interval statistics for the
+last max(n_start, n_reident) intervals. Choices where the paper is silent: selecting the first
+model by its observer-initialised E (MFM needs no zero initial condition), the onset definition
+of an operating point, and the data-scaled variance threshold.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._model import Model
+from ._observers import _observe_forced
+from ._search import _plan, _run, _validate, padded_forced
+from ._signals import INTERSAMPLE, Signals
+from ._status import Status
+
+FORMAT, VERSION = "mfmjax-online", 1
+
+
+def _tuple(x, cast):
+    return tuple(cast(v) for v in (x if isinstance(x, (list, tuple)) else [x]))
+
+
+class OnlineConfig(eqx.Module):
+    """Settings of Algorithm 1 (defaults: the paper's Table 1, time in seconds).
+
+    **Arguments:**
+
+    - `dt`: sampling interval; `n_inputs`: K.
+    - `interval` (T), `n_start`, `n_reident`, `T_obfin`, `T_obinit`, `tr_corr`: Table 1.
+    - `n`, `m`, `N`, `M`, `h`: the candidate set of the re-identification (a search grid; default
+      the orders and MF settings of the paper's Tables 2-5: n in {2, 3}, m_k in {0, 1},
+      N in {3, 5}, M in {4, 6}, h in {50, 100}: 64 candidates).
+    - `delays`: known input delays; `intersample`, `smooth`, `output_rule`, `offset` (a constant
+      term in the model, default True: plant data are not deviation variables), `eta`: as in
+      `Signals` / `search`.
+    - `steady_rel`: an interval is steady when each signal's variance over it is below
+      `steady_rel` times that signal's variance over all valid intervals so far; `steady_var`
+      (output, then each input) replaces this by absolute thresholds.
+    """
+
+    dt: float = eqx.field(static=True)
+    n_inputs: int = eqx.field(static=True)
+    interval: float = eqx.field(static=True)
+    n_start: int = eqx.field(static=True)
+    n_reident: int = eqx.field(static=True)
+    T_obfin: float = eqx.field(static=True)
+    T_obinit: float = eqx.field(static=True)
+    tr_corr: float = eqx.field(static=True)
+    n: tuple = eqx.field(static=True)
+    m: tuple = eqx.field(static=True)
+    N: tuple = eqx.field(static=True)
+    M: tuple = eqx.field(static=True)
+    h: tuple = eqx.field(static=True)
+    delays: tuple = eqx.field(static=True)
+    intersample: tuple = eqx.field(static=True)
+    smooth: tuple = eqx.field(static=True)
+    output_rule: str = eqx.field(static=True)
+    offset: bool = eqx.field(static=True)
+    eta: tuple | None = eqx.field(static=True)
+    steady_rel: float = eqx.field(static=True)
+    steady_var: tuple | None = eqx.field(static=True)
+    output_name: str = eqx.field(static=True)
+    input_names: tuple = eqx.field(static=True)
+
+    def __init__(
+        self, *, dt: float, n_inputs: int, interval: float = 250.0, n_start: int = 8,
+        n_reident: int = 4, T_obfin: float = 500.0, T_obinit: float = 1000.0,
+        tr_corr: float = 0.5, n=(2, 3), m=None, N=(3, 5), M=(4, 6), h=(50.0, 100.0),
+        delays=None, intersample="foh", smooth=False, output_rule: str = "cubic",
+        offset: bool = True, eta=None, steady_rel: float = 0.1, steady_var=None,
+        output_name: str = "y", input_names=None,
+    ):
+        K = int(n_inputs)
+        if K < 1:
+            raise ValueError("OnlineConfig(): n_inputs must be >= 1")
+        dt = float(dt)
+        if not (math.isfinite(dt) and dt > 0):
+            raise ValueError(f"OnlineConfig(): dt must be > 0 (got {dt})")
+        S = interval / dt
+        if not (interval > 0 and abs(S - round(S)) < 1e-9 * S and round(S) >= 16):
+            raise ValueError(
+                f"OnlineConfig(): interval ({interval:g}) must be a whole number (>= 16) of "
+                f"samples dt={dt:g}"
+            )
+        for name, v in (("n_start", n_start), ("n_reident", n_reident)):
+            if int(v) != v or v < 1:
+                raise ValueError(f"OnlineConfig(): {name} must be an integer >= 1 (got {v})")
+        for name, v in (("T_obfin", T_obfin), ("T_obinit", T_obinit)):
+            if not (math.isfinite(v) and 8 * dt <= v):
+                raise ValueError(f"OnlineConfig(): {name} must span at least 8 samples (got {v})")
+        if T_obinit > n_reident * interval or T_obinit > n_start * interval:
+            raise ValueError(
+                "OnlineConfig(): T_obinit must fit in the identification windows "
+                f"(n_reident * interval = {n_reident * interval:g})"
+            )
+        if not 0 <= tr_corr <= 1:
+            raise ValueError(f"OnlineConfig(): tr_corr must lie in [0, 1] (got {tr_corr})")
+        if not steady_rel > 0:
+            raise ValueError(f"OnlineConfig(): steady_rel must be > 0 (got {steady_rel})")
+        self.dt, self.n_inputs, self.interval = dt, K, float(interval)
+        self.n_start, self.n_reident = int(n_start), int(n_reident)
+        self.T_obfin, self.T_obinit, self.tr_corr = float(T_obfin), float(T_obinit), float(tr_corr)
+        self.n = _tuple(n, int)
+        self.m = (tuple(_tuple(mk, int) for mk in m) if m is not None
+                  else tuple((0, 1) for _ in range(K)))
+        if len(self.m) != K:
+            raise ValueError(f"OnlineConfig(): m needs one list of orders per input ({K})")
+        self.N, self.M, self.h = _tuple(N, float), _tuple(M, float), _tuple(h, float)
+        self.delays = _tuple(delays, float) if delays is not None else (0.0,) * K
+        self.intersample = _tuple(intersample, str) * (K if not isinstance(
+            intersample, (list, tuple)) else 1)
+        self.smooth = _tuple(smooth, bool) * (K if not isinstance(smooth, (list, tuple)) else 1)
+        for name, v in (("delays", self.delays), ("intersample", self.intersample),
+                        ("smooth", self.smooth)):
+            if len(v) != K:
+                raise ValueError(f"OnlineConfig(): {name} needs one entry per input ({K})")
+        if any(d < 0 or not math.isfinite(d) for d in self.delays):
+            raise ValueError(f"OnlineConfig(): delays must be finite and >= 0 (got {self.delays})")
+        if any(mode not in INTERSAMPLE for mode in self.intersample):
+            raise ValueError(f"OnlineConfig(): intersample must be one of {INTERSAMPLE}")
+        if max(self.h) + max(self.delays) >= n_reident * interval / 2:
+            raise ValueError(
+                "OnlineConfig(): h + delay must be below half the re-identification window "
+                f"({n_reident * interval / 2:g}); lower h or raise n_reident"
+            )
+        self.output_rule, self.offset = str(output_rule), bool(offset)
+        self.eta = _tuple(eta, float) if eta is not None else None
+        self.steady_rel = float(steady_rel)
+        self.steady_var = _tuple(steady_var, float) if steady_var is not None else None
+        if self.steady_var is not None and len(self.steady_var) != K + 1:
+            raise ValueError(f"OnlineConfig(): steady_var needs {K + 1} values (output, inputs)")
+        self.output_name = str(output_name)
+        self.input_names = (_tuple(input_names, str) if input_names is not None
+                            else tuple(f"u{k + 1}" for k in range(K)))
+
+    # derived sizes (samples)
+    @property
+    def samples(self) -> int:  # per interval
+        return round(self.interval / self.dt)
+
+    @property
+    def n_max(self) -> int:
+        return max(self.n)
+
+    @property
+    def margin(self) -> int:  # input history the delayed inputs need before a window
+        return math.ceil(max(self.delays) / self.dt) + 1
+
+    @property
+    def ob_final(self) -> int:
+        return round(self.T_obfin / self.dt) + 1
+
+    @property
+    def buffer(self) -> int:
+        S = self.samples
+        return max(self.n_start * S, self.n_reident * S, self.ob_final + S + self.margin)
+
+    @property
+    def history(self) -> int:  # intervals of statistics kept
+        return max(self.n_start, self.n_reident)
+
+    def to_dict(self) -> dict:
+        return {f: getattr(self, f) for f in self.__dataclass_fields__}
+
+
+class OnlineState(eqx.Module):
+    """Everything Algorithm 1 carries from one update to the next (fixed-size numpy leaves)."""
+
+    config: OnlineConfig = eqx.field(static=True)
+    t0: np.ndarray  # time of sample 0 (NaN before the first update)
+    n_seen: np.ndarray  # samples received (index of the next sample)
+    buf_y: np.ndarray  # (L,) ring buffer, sample i at i % L
+    buf_u: np.ndarray  # (L, K)
+    stream: np.ndarray  # (3, K+1): count, mean, M2 of each signal over valid intervals
+    iv: np.ndarray  # (R, 4): valid, steady, onset, correlation of the last R intervals
+    n_closed: np.ndarray  # intervals closed
+    model: dict  # current model (padded arrays) and its bookkeeping
+    op_count: np.ndarray  # operating points used so far
+
+
+def _empty_model(config: OnlineConfig) -> dict:
+    K, nm = config.n_inputs, config.n_max
+    z = lambda *s: np.zeros(s)  # noqa: E731
+    return {
+        "exists": np.asarray(False), "a": z(nm + 1), "b": z(K, nm + 1), "offset": z(),
+        "n": np.asarray(0), "m": np.zeros(K, dtype=np.int64), "N": z(), "M": z(), "h": z(),
+        "number": np.asarray(0), "op": np.asarray(0), "op_time": np.asarray(np.nan),
+    }
+
+
+def init(config: OnlineConfig) -> OnlineState:
+    """A fresh on-line identifier (no data, no model)."""
+    if not isinstance(config, OnlineConfig):
+        raise TypeError("init(): config must be an OnlineConfig")
+    K, L = config.n_inputs, config.buffer
+    return OnlineState(
+        config=config, t0=np.asarray(np.nan), n_seen=np.asarray(0),
+        buf_y=np.full(L, np.nan), buf_u=np.full((L, K), np.nan),
+        stream=np.zeros((3, K + 1)), iv=np.zeros((config.history, 4)),
+        n_closed=np.asarray(0), model=_empty_model(config), op_count=np.asarray(0),
+    )
+
+
+class OnlineOutputs(eqx.Module):
+    """What one `update` produced: the samples of the intervals it closed with their predictions
+    (`y_pred` NaN and `model_number` 0 where no model predicted), one event per closed interval
+    and a record per accepted model (the columns of the paper's Tables 2-5)."""
+
+    t: np.ndarray
+    y: np.ndarray
+    y_pred: np.ndarray
+    model_number: np.ndarray
+    events: tuple
+    models: tuple
+
+
+# -- compiled kernels (one compilation per config) ------------------------------------------
+
+
+def _window_signals(config: OnlineConfig, y, u, t0: float) -> Signals:
+    return Signals(
+        y, u, dt=config.dt, t0=t0, intersample=config.intersample, delays=config.delays,
+        offset=config.offset, smooth=config.smooth, output_rule=config.output_rule,
+        output_name=config.output_name, input_names=config.input_names,
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def _plan_for(config: OnlineConfig, intervals: int):
+    """The candidate grid checked and compiled once for a window of `intervals` intervals."""
+    L = intervals * config.samples
+    template = _window_signals(config, np.zeros(L), np.zeros((L, config.n_inputs)), 0.0)
+    p = config.n_max + 1 + sum(max(mk) + 1 for mk in config.m) + int(config.offset)
+    eta = None if config.eta is None else np.resize(np.asarray(config.eta), p)
+    return _plan(
+        template, n=config.n, N=config.N, M=config.M, h=config.h, m=config.m,
+        delays=[[d] for d in config.delays], score="E", validate=None,
+        observer_window=min(config.T_obinit, (L - 1) * config.dt), eta=eta,
+        chunk_size=len(config.h), simulate=True,
+    )
+
+
+@eqx.filter_jit
+def _score(sig, static, c):
+    return _validate(sig, static, c)
+
+
+@eqx.filter_jit
+def _predict(sig, c, start: int, ob: int):
+    """Final-state observer over samples [start, start+ob) then the simulation to the end."""
+    forced, live = padded_forced(sig, c)
+    length = sig.n_samples - start
+    obs = _observe_forced(forced, sig.y, sig.dt, start, length, ob, live)
+    return obs.y_sim[ob:], obs.status
+
+
+# -- the state machine ------------------------------------------------------------------------
+
+
+def _candidate(config: OnlineConfig, model: dict) -> dict:
+    K = config.n_inputs
+    k = int(model["n"]) + sum(int(v) + 1 for v in model["m"]) + int(config.offset)
+    return {"a": jnp.asarray(model["a"]), "b": jnp.asarray(model["b"]),
+            "offset": jnp.asarray(model["offset"]), "n": jnp.asarray(model["n"]),
+            "delays": jnp.asarray(config.delays).reshape(K), "k": jnp.asarray(float(k))}
+
+
+def _take(state: OnlineState, start: int, length: int):
+    """Samples start .. start+length-1 (absolute indices) from the ring buffer."""
+    idx = np.arange(start, start + length) % state.buf_y.shape[0]
+    return state.buf_y[idx], state.buf_u[idx]
+
+
+def _interval_stats(state: OnlineState, j: int):
+    c = state.config
+    S, K = c.samples, c.n_inputs
+    y, u = _take(state, j * S, S)
+    valid = bool(np.all(np.isfinite(y)) and np.all(np.isfinite(u)))
+    if not valid:
+        return valid, False, 0.0, None
+    x = np.column_stack([y, u])
+    var = x.var(axis=0)
+    count, mean, m2 = state.stream
+    total = count + S  # the stream statistics include this interval (Chan's merge)
+    delta = x.mean(axis=0) - mean
+    new = np.stack([total, mean + delta * S / total, m2 + S * var + delta**2 * count * S / total])
+    if c.steady_var is not None:
+        thr = np.asarray(c.steady_var)
+    else:
+        thr = c.steady_rel * new[2] / new[0]
+    steady = bool(np.all(var <= thr))
+    corr = 0.0
+    L = state.buf_y.shape[0]
+    for k in range(K):  # against the delayed input, when its history is still in the buffer
+        shift = round(c.delays[k] / c.dt)
+        if j * S - shift < 0 or shift > L - S:
+            continue
+        _, ud = _take(state, j * S - shift, S)
+        ud = ud[:, k]
+        if np.all(np.isfinite(ud)) and np.ptp(ud) > 0 and np.ptp(y) > 0:  # constant: no corr
+            corr = max(corr, abs(float(np.corrcoef(y, ud)[0, 1])))
+    return valid, steady, corr, new
+
+
+def _model_record(config, model: dict, window, E_current, E_reident, reason, j, op_label):
+    n, m = int(model["n"]), [int(v) for v in model["m"]]
+    return {
+        "model": int(model["number"]), "operating_point": op_label,
+        "operating_point_time": float(model["op_time"]),
+        "ident_window": [float(window[0]), float(window[1])],
+        "sim_start": float(window[1]), "sim_end": None, "interval": j,
+        "N": _num(model["N"]), "M": _num(model["M"]), "h": float(model["h"]), "n": n, "m": m,
+        "a": [float(v) for v in model["a"][: n + 1]],
+        "b": [[float(v) for v in model["b"][k][: m[k] + 1]] for k in range(config.n_inputs)],
+        "offset": float(model["offset"]) if config.offset else None,
+        "delays": list(config.delays), "E_current": E_current, "E_reident": E_reident,
+        "reason": reason,
+    }
+
+
+def _num(x):
+    v = float(x)
+    return int(v) if v == int(v) else v
+
+
+def _identify_window(state: OnlineState, j: int, w: int):
+    """The batched search on the last `w` intervals: (window signals, plan, result)."""
+    c = state.config
+    S = c.samples
+    start = (j + 1 - w) * S
+    y, u = _take(state, start, w * S)
+    t_start = float(state.t0) + start * c.dt
+    sig = _window_signals(c, y, u, 0.0)  # t0 is static in Signals: one compilation
+    plan = _plan_for(c, w)
+    return sig, plan, _run(plan, sig), (t_start, t_start + w * S * c.dt)
+
+
+def _best_ok(res):
+    if len(res) == 0 or int(res.columns["status"][res.rank[0]]) != 0:
+        return None
+    return res.row(0)
+
+
+def _as_model(config: OnlineConfig, row: dict, number: int, op: int, op_time: float) -> dict:
+    K, nm = config.n_inputs, config.n_max
+    b = np.zeros((K, nm + 1))
+    for k in range(K):
+        b[k, : len(row["b"][k])] = row["b"][k]
+    a = np.zeros(nm + 1)
+    a[: row["n"] + 1] = row["a"]
+    return {
+        "exists": np.asarray(True), "a": a, "b": b,
+        "offset": np.asarray(row["offset"] or 0.0), "n": np.asarray(row["n"]),
+        "m": np.asarray(row["m"], dtype=np.int64), "N": np.asarray(float(row["N"])),
+        "M": np.asarray(float(row["M"])), "h": np.asarray(row["h"]),
+        "number": np.asarray(number), "op": np.asarray(op), "op_time": np.asarray(op_time),
+    }
+
+
+def _prediction(state: OnlineState, j: int):
+    """Step 5 of interval j-1, evaluated when interval j closes: (y_pred (S,), reason)."""
+    c = state.config
+    S, ob, mg = c.samples, c.ob_final, c.margin
+    start = j * S - ob - mg
+    if start < 0 or start < int(state.n_seen) - c.buffer:
+        return None, "no prediction: not enough history for the final-state observer"
+    y, u = _take(state, start, mg + ob + S)
+    y = y.copy()
+    y[mg + ob:] = 0.0  # the predicted interval's outputs are not used
+    if not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
+        return None, "no prediction: NaN samples in the observer window or inputs"
+    sig = _window_signals(c, y, u, 0.0)
+    y_pred, status = _predict(sig, _candidate(c, state.model), mg, ob)
+    if int(status) != 0:
+        return None, "no prediction: observer failed (" + Status(int(status)).name + ")"
+    return np.asarray(y_pred), "predicted"
+
+
+def _close_interval(state: OnlineState, j: int):
+    """Algorithm 1 at the end of interval j (0-based): returns (state, event, record, y_pred)."""
+    c = state.config
+    S, R = c.samples, c.history
+    valid, steady, corr, stream = _interval_stats(state, j)
+    prev_steady = bool(state.iv[(j - 1) % R, 1]) if j > 0 else False
+    onset = steady and not prev_steady
+    iv = state.iv.copy()
+    iv[j % R] = [valid, steady, onset, corr]
+    t_iv = float(state.t0) + j * S * c.dt
+    event = {"interval": j, "t_start": t_iv, "t_end": t_iv + S * c.dt, "valid": valid,
+             "steady": steady, "operating_point": onset, "corr": corr, "action": "none",
+             "E_current": None, "E_reident": None, "prediction": None}
+    model = state.model
+    y_pred = None
+    if bool(model["exists"]):
+        y_pred, event["prediction"] = _prediction(state, j)
+    state = eqx.tree_at(lambda s: (s.iv, s.n_closed), state, (iv, np.asarray(j + 1)))
+    if stream is not None:
+        state = eqx.tree_at(lambda s: s.stream, state, stream)
+
+    def recent(w):  # rows of the last w intervals that exist
+        return [iv[(j - i) % R] for i in range(min(w, j + 1))]
+
+    record = None
+    has = bool(model["exists"])
+    w = c.n_start if not has else c.n_reident
+    rows = recent(w)
+    if any(r[2] for r in rows):  # an operating point in the last w intervals (Step 2)
+        op_time = max(float(state.t0) + (j - i) * S * c.dt
+                      for i, r in enumerate(rows) if r[2])
+        if j + 1 < w:
+            event["action"] = f"waiting: {j + 1} of {w} intervals"
+        elif not all(r[0] for r in rows):
+            event["action"] = "skipped: NaN samples in the identification window"
+        elif max(r[3] for r in rows) < c.tr_corr:
+            event["action"] = f"skipped: input-output correlation below tr_corr={c.tr_corr:g}"
+        else:
+            sig, plan, res, window = _identify_window(state, j, w)
+            best = _best_ok(res)
+            if best is None:
+                event["action"] = "rejected: every candidate was flagged"
+            elif not has:  # Step 3: the first model
+                new = _as_model(c, best, 1, 1, op_time)
+                event.update(action="first model", E_reident=best["E"])
+                record = _model_record(c, new, window, None, best["E"], "first model", j, "p1")
+                state = eqx.tree_at(lambda s: (s.model, s.op_count), state, (new, np.asarray(1)))
+            else:  # Step 4: E_current against E_reident
+                E_cur = float(_score(sig, plan.static, _candidate(c, model))["E"])
+                E_cur_ok = math.isfinite(E_cur)
+                event.update(E_current=E_cur if E_cur_ok else None, E_reident=best["E"])
+                if not E_cur_ok or best["E"] < E_cur:
+                    same_op = float(model["op_time"]) == op_time
+                    op = int(state.op_count) + (0 if same_op else 1)
+                    new = _as_model(c, best, int(model["number"]) + 1, op, op_time)
+                    event["action"] = "model updated: E_reident < E_current"
+                    record = _model_record(c, new, window, event["E_current"], best["E"],
+                                           event["action"], j, f"p{op}")
+                    state = eqx.tree_at(lambda s: (s.model, s.op_count), state,
+                                        (new, np.asarray(op)))
+                else:
+                    event["action"] = "kept: E_reident >= E_current"
+    event["model"] = int(state.model["number"])
+    return state, event, record, y_pred
+
+
+def update(state: OnlineState, t, y, u):
+    """Feed samples (times `t` (P,), output `y` (P,), inputs `u` (P, K)); any chunk size.
+
+    Times must lie on the grid t0 + i dt (t0 = the first sample ever fed) and increase; a jump
+    leaves a gap that is filled with NaN (its intervals are invalid). NaN or inf samples are
+    accepted and mark their interval invalid.
+
+    **Returns:** (new state, `OnlineOutputs` of the intervals closed by this chunk).
+    """
+    if not isinstance(state, OnlineState):
+        raise TypeError("update(): state must be an OnlineState (from init or load)")
+    c = state.config
+    K, S, L = c.n_inputs, c.samples, c.buffer
+    t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+    y = np.atleast_1d(np.asarray(y, dtype=np.float64))
+    u = np.asarray(u, dtype=np.float64).reshape(t.shape[0], -1) if np.size(u) else np.zeros(
+        (t.shape[0], 0))
+    if t.ndim != 1 or y.shape != t.shape or u.shape != (t.shape[0], K):
+        raise ValueError(
+            f"update(): need t (P,), y (P,), u (P, {K}); got {t.shape}, {y.shape}, {u.shape}"
+        )
+    if not np.all(np.isfinite(t)):
+        raise ValueError("update(): t contains NaN or inf; times must be finite")
+    t0 = float(state.t0) if math.isfinite(float(state.t0)) else (float(t[0]) if t.size else 0.0)
+    idx = np.round((t - t0) / c.dt).astype(np.int64)
+    if np.any(np.abs(t - (t0 + idx * c.dt)) > 1e-6 * c.dt):
+        raise ValueError(f"update(): t is not on the sampling grid t0 + i*dt (dt={c.dt:g})")
+    if np.any(np.diff(idx) <= 0) or (idx.size and idx[0] < int(state.n_seen)):
+        raise ValueError("update(): t must increase and continue after the samples already fed")
+    state = eqx.tree_at(lambda s: s.t0, state, np.asarray(t0))
+    ts, ys, ps, ms, events, models = [], [], [], [], [], []
+    pos = 0
+    while pos < idx.size:
+        n_seen = int(state.n_seen)
+        end_iv = (n_seen // S + 1) * S  # first index after the current interval
+        stop = int(np.searchsorted(idx, end_iv, side="left"))
+        # samples pos..stop-1 belong to the current interval (with NaN in the gaps)
+        last = min(end_iv, int(idx[stop - 1]) + 1) if stop > pos else n_seen
+        span = np.arange(n_seen, last)
+        by, bu = state.buf_y.copy(), state.buf_u.copy()
+        by[span % L], bu[span % L] = np.nan, np.nan
+        sel = idx[pos:stop]
+        by[sel % L], bu[sel % L] = y[pos:stop], u[pos:stop]
+        if stop == idx.size and last < end_iv:  # chunk ends inside the interval
+            state = eqx.tree_at(lambda s: (s.buf_y, s.buf_u, s.n_seen), state,
+                                (by, bu, np.asarray(last)))
+            break
+        # the interval is complete: either the chunk reached its end or jumped past it
+        span = np.arange(last, end_iv)
+        by[span % L], bu[span % L] = np.nan, np.nan
+        state = eqx.tree_at(lambda s: (s.buf_y, s.buf_u, s.n_seen), state,
+                            (by, bu, np.asarray(end_iv)))
+        j = end_iv // S - 1
+        state, event, record, y_pred = _close_interval(state, j)
+        yi, _ = _take(state, j * S, S)
+        ts.append(t0 + np.arange(j * S, end_iv) * c.dt)
+        ys.append(yi)
+        ps.append(y_pred if y_pred is not None else np.full(S, np.nan))
+        ms.append(np.full(S, event["model"] if y_pred is not None else 0))
+        if y_pred is not None:
+            event["mse"] = float(np.nanmean((yi - y_pred) ** 2)) if np.any(
+                np.isfinite(yi)) else None
+        events.append(event)
+        if record is not None:
+            models.append(record)
+        pos = stop
+    cat = lambda xs, dt=np.float64: np.concatenate(xs) if xs else np.zeros(0, dt)  # noqa: E731
+    return state, OnlineOutputs(
+        t=cat(ts), y=cat(ys), y_pred=cat(ps), model_number=cat(ms, np.int64),
+        events=tuple(events), models=tuple(models),
+    )
+
+
+# -- checkpoints -------------------------------------------------------------------------------
+
+
+def save(path, state: OnlineState) -> None:
+    """Write the whole state (configuration included) to one `.npz` file."""
+    leaves = jax.tree_util.tree_leaves(state)
+    header = json.dumps({"format": FORMAT, "version": VERSION, "config": state.config.to_dict()})
+    with open(path, "wb") as fh:
+        np.savez(fh, header=np.asarray(header), **{f"leaf{i}": np.asarray(v)
+                                                   for i, v in enumerate(leaves)})
+
+
+def load(path) -> OnlineState:
+    """Read a state written by `save`; resuming from it continues exactly where it stopped."""
+    with np.load(path, allow_pickle=False) as f:
+        header = json.loads(str(f["header"]))
+        if header.get("format") != FORMAT or header.get("version") != VERSION:
+            raise ValueError(f"load(): {path} is not an mfmjax on-line checkpoint (v{VERSION})")
+        config = OnlineConfig(**header["config"])
+        like = init(config)
+        leaves, treedef = jax.tree_util.tree_flatten(like)
+        new = [np.asarray(f[f"leaf{i}"]).astype(np.asarray(v).dtype).reshape(np.shape(v))
+               for i, v in enumerate(leaves)]
+    return jax.tree_util.tree_unflatten(treedef, new)
+
+
+# -- convenience wrapper ------------------------------------------------------------------------
+
+
+class OnlineIdentifier:
+    """Thin stateful wrapper: keeps the state, the prediction series, events and model records.
+
+    `keep_history=False` keeps only the state and the model records (endless streams).
+    """
+
+    def __init__(self, config: OnlineConfig | None = None, *, state: OnlineState | None = None,
+                 keep_history: bool = True, **kwargs):
+        if state is None:
+            state = init(config if config is not None else OnlineConfig(**kwargs))
+        self.state, self.keep_history = state, keep_history
+        self.models: list[dict] = []
+        self.events: list[dict] = []
+        self._series: list[OnlineOutputs] = []
+
+    def update(self, t, y, u) -> OnlineOutputs:
+        self.state, out = update(self.state, t, y, u)
+        for rec in out.models:
+            if self.models:
+                self.models[-1]["sim_end"] = rec["sim_start"]
+            self.models.append(dict(rec))
+        if self.keep_history:
+            self.events.extend(out.events)
+            self._series.append(out)
+        return out
+
+    def series(self) -> dict:
+        """Concatenated t, y, y_pred, model_number of every closed interval so far."""
+        keys = ("t", "y", "y_pred", "model_number")
+        if not self._series:
+            return {k: np.zeros(0) for k in keys}
+        return {k: np.concatenate([getattr(o, k) for o in self._series]) for k in keys}
+
+    def mse(self) -> float:
+        """Mean square prediction error over the predicted samples (the paper's figure)."""
+        s = self.series()
+        ok = np.isfinite(s["y_pred"]) & np.isfinite(s["y"])
+        return float(np.mean((s["y"][ok] - s["y_pred"][ok]) ** 2)) if ok.any() else math.nan
+
+    def model(self, number: int = -1) -> Model:
+        """A model record as a `Model` (default: the current one)."""
+        rec = self.models[number]
+        c = self.state.config
+        return Model.from_coefficients(
+            rec["a"], rec["b"], offset=rec["offset"], delays=rec["delays"],
+            intersample=c.intersample, output_name=c.output_name, input_names=c.input_names,
+        )
+
+    def table(self) -> str:
+        return model_table(self.models, end=self._end())
+
+    def _end(self):
+        n = int(self.state.n_closed) * self.state.config.samples
+        return float(self.state.t0) + n * self.state.config.dt if n else None
+
+    def save(self, path) -> None:
+        save(path, self.state)
+
+    @classmethod
+    def load(cls, path, keep_history: bool = True) -> OnlineIdentifier:
+        return cls(state=load(path), keep_history=keep_history)
+
+
+def model_table(models, end=None) -> str:
+    """The paper's Tables 2-3 (or 4-5) in one: windows, MF settings, orders, parameters, E."""
+    lines = [f"{'nr':>3} {'op':>4} {'ident [s]':>13} {'sim [s]':>13} {'N':>3} {'M':>3} "
+             f"{'h':>6} {'n':>2} {'m':>5} {'E_current':>10} {'E_reident':>10}  parameters"]
+    for r in models:
+        sim_end = r["sim_end"] if r["sim_end"] is not None else end
+        params = " ".join(f"a{i}={v:.4g}" for i, v in enumerate(r["a"]))
+        for k, bk in enumerate(r["b"]):
+            params += " " + " ".join(f"b{k + 1}{j}={v:.4g}" for j, v in enumerate(bk))
+        if r["offset"] is not None:
+            params += f" c={r['offset']:.4g}"
+        e_cur = "-" if r["E_current"] is None else f"{r['E_current']:.4g}"
+        lines.append(
+            f"{r['model']:>3} {r['operating_point']:>4} "
+            f"{r['ident_window'][0]:>6.0f}-{r['ident_window'][1]:<6.0f} "
+            f"{r['sim_start']:>6.0f}-{'' if sim_end is None else f'{sim_end:.0f}':<6} "
+            f"{r['N']:>3} {r['M']:>3} {r['h']:>6.4g} {r['n']:>2} "
+            f"{','.join(map(str, r['m'])):>5} {e_cur:>10} {r['E_reident']:>10.4g}  {params}"
+        )
+    return "\n".join(lines)

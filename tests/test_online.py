@@ -1,0 +1,226 @@
+"""Algorithm 1 (on-line identification): each step, streaming robustness and checkpoints.
+
+The plant (`datasets.switching_experiment`) is noise-free and moves from model A to model B at
+an operating point (quiet intervals 16-18, switch at 4000 s). MFM with the cubic output rule
+identifies noise-free 2nd-order data with h = 50-100 samples to ~1e-7 relative (see
+test_identify), so 1e-3 (the issue's acceptance bound) is met with room to spare.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+import mfmjax
+from mfmjax import OnlineConfig, OnlineIdentifier
+from mfmjax.datasets import switching_experiment, switching_plant
+
+S = 250
+
+
+def _config(**kw):
+    base = dict(dt=1.0, n_inputs=2, n=(2,), intersample=("foh", "zoh"))
+    return OnlineConfig(**{**base, **kw})
+
+
+def _run(t, y, u, config=None, chunk=97):
+    ident = OnlineIdentifier(config or _config())
+    for c0 in range(0, len(t), chunk):
+        ident.update(t[c0 : c0 + chunk], y[c0 : c0 + chunk], u[c0 : c0 + chunk])
+    return ident
+
+
+@pytest.fixture(scope="module")
+def switching():
+    t, y, u, switches = switching_experiment()
+    return t, y, u, switches, _run(t, y, u)
+
+
+def _params(rec):
+    return np.concatenate([rec["a"], *[np.asarray(b) for b in rec["b"]]])
+
+
+def _true(model):
+    return np.concatenate([np.asarray(model.a), *[np.asarray(b) for b in model.b]])
+
+
+def _rel(rec, model):
+    p, q = _params(rec), _true(model)
+    if p.shape != q.shape:
+        return math.inf
+    return float(np.max(np.abs(p - q) / np.abs(q)))
+
+
+def test_switching_plant_models_recovered(switching):
+    t, y, u, switches, ident = switching
+    A, B = switching_plant()
+    first, last = ident.models[0], ident.models[-1]
+    assert first["reason"] == "first model" and _rel(first, A) < 1e-3
+    assert _rel(last, B) < 1e-3
+    # the model of B is accepted n_reident intervals after the onset at the switch (interval 16)
+    assert last["interval"] == 16 + 4 - 1
+    assert last["ident_window"] == [16 * S, 20 * S]
+    assert abs(last["offset"]) < 1e-6
+
+
+def test_prediction_error_collapses_after_switch(switching):
+    t, y, u, switches, ident = switching
+    ev = {e["interval"]: e for e in ident.events}
+    scale = float(np.var(y))
+    # noise-free: predictions of an exact model from the final-state observer are exact
+    good = [ev[j]["mse"] for j in range(8, 16)] + [ev[j]["mse"] for j in range(21, 40)]
+    assert max(good) < 1e-6 * scale
+    # right after the switch the old model predicts the new plant badly
+    assert ev[19]["mse"] > 1e-2 * scale
+    assert 0 < ident.mse() < np.inf
+
+
+def test_first_identification_waits_for_n_start(switching):
+    ident = switching[4]
+    actions = [e["action"] for e in ident.events]
+    first = actions.index("first model")
+    assert first == 8 - 1  # Step 3: j >= n_start
+    assert all(a.startswith("waiting") for a in actions[:first])
+    assert ident.models[0]["ident_window"] == [0.0, 8 * S]
+    # Step 5 only runs with a model: nothing is predicted before the first model exists
+    s = ident.series()
+    assert np.all(np.isnan(s["y_pred"][: 8 * S])) and np.all(np.isfinite(s["y_pred"][8 * S :]))
+
+
+def test_update_rule_records_E(switching):
+    ident = switching[4]
+    for rec in ident.models[1:]:
+        assert rec["E_reident"] < rec["E_current"]  # Step 4's rule
+        assert rec["ident_window"][1] - rec["ident_window"][0] == 4 * S  # n_reident intervals
+        assert rec["operating_point"] == "p2" and rec["operating_point_time"] == 16 * S
+    for a, b in zip(ident.models, ident.models[1:]):
+        assert a["sim_end"] == b["sim_start"]
+    assert "E_reident" in ident.table() and "p2" in ident.table()
+
+
+def test_reidentification_needs_an_operating_point():
+    t, y, u, _ = switching_experiment()
+    # steady only where the signals are exactly constant (interval 0): no later operating point,
+    # so Step 4 never runs and the model of A is kept after the switch
+    ident = _run(t, y, u, _config(steady_var=(0.0, 0.0, 0.0)))
+    assert len(ident.models) == 1
+    assert not any(e["operating_point"] for e in ident.events[1:])
+    assert all(e["action"] == "none" for e in ident.events[8:])
+
+
+def test_correlation_test_blocks_identification():
+    t, y, u, _ = switching_experiment(models=switching_plant()[:1], switches=(), n_intervals=12)
+    ident = _run(t, y, u, _config(tr_corr=0.99))
+    assert not ident.models
+    assert any("correlation below tr_corr" in e["action"] for e in ident.events)
+
+
+def test_outlier_is_not_adopted_and_kept_model_is_reported():
+    A, _ = switching_plant()
+    t, y, u, _ = switching_experiment(models=(A,), switches=(), n_intervals=24)
+    y = y.copy()
+    y[16 * S + 100] += 50.0 * np.std(y)  # a spike inside the quiet intervals
+    ident = _run(t, y, u)
+    assert all(np.isfinite(e["corr"]) for e in ident.events)
+    kept = [e for e in ident.events if e["action"].startswith("kept")]
+    assert kept and all(e["E_reident"] >= e["E_current"] for e in kept)
+    assert _rel(ident.models[-1], A) < 1e-3  # the spike did not buy a worse model
+
+
+def test_nan_gap_and_time_jump():
+    t, y, u, _ = switching_experiment(switches=(20,), n_intervals=24)
+    y = y.copy()
+    y[8 * S + 5 : 8 * S + 40] = np.nan  # NaN samples in interval 8
+    keep = (t < 13 * S) | (t >= 14 * S)  # interval 13 never arrives: a gap in time
+    ident = _run(t[keep], y[keep], u[keep])
+    ev = {e["interval"]: e for e in ident.events}
+    assert not ev[8]["valid"] and not ev[13]["valid"] and ev[12]["valid"]
+    # the final-state observer window (T_obfin = 500 s = 501 samples) reaches back 2 intervals
+    # (+1 input sample before it, for the input rules)
+    for j in (9, 10, 14, 15, 16):
+        assert ev[j]["prediction"].startswith("no prediction")
+    for j in (11, 12, 17):  # prediction resumes once the observer window is clean
+        assert ev[j]["prediction"] == "predicted" and ev[j]["mse"] < 1e-8
+    assert len(ident.series()["t"]) == 24 * S  # the gap is reported as NaN samples
+    assert np.isnan(ident.series()["y"][13 * S : 14 * S]).all()
+
+
+def test_stuck_sensor_does_not_crash():
+    t, y, u, _ = switching_experiment(switches=(25,), n_intervals=30)
+    y = y.copy()
+    y[20 * S :] = y[20 * S]  # the thermocouple freezes
+    ident = _run(t, y, u)
+    ev = ident.events
+    assert all(e["corr"] == 0.0 for e in ev[20:])
+    assert all(e["action"] == "none" or e["action"].startswith("skipped") for e in ev[20:])
+    s = ident.series()
+    assert np.all(np.isfinite(s["y_pred"][8 * S :]))
+
+
+def test_checkpoint_resume_equals_uninterrupted(switching, tmp_path):
+    t, y, u, _, full = switching
+    cut = 4321  # mid-interval, mid re-identification period
+    part = _run(t[:cut], y[:cut], u[:cut], chunk=500)
+    path = tmp_path / "state.npz"
+    part.save(path)
+    resumed = OnlineIdentifier.load(path)
+    for c0 in range(cut, len(t), 1000):
+        resumed.update(t[c0 : c0 + 1000], y[c0 : c0 + 1000], u[c0 : c0 + 1000])
+    a, b = full.series(), part.series()
+    r = resumed.series()
+    for key in ("t", "y", "y_pred", "model_number"):
+        joined = np.concatenate([b[key], r[key]])
+        np.testing.assert_array_equal(joined, a[key])
+    assert [m["a"] for m in full.models] == [m["a"] for m in part.models + resumed.models]
+
+
+def test_single_sample_chunks_equal_large_chunks(switching):
+    t, y, u, _, full = switching
+    n = 11 * S + 7
+    small = _run(t[:n], y[:n], u[:n], chunk=1)
+    np.testing.assert_array_equal(small.series()["y_pred"], full.series()["y_pred"][: 11 * S])
+
+
+def test_functional_api_state_is_a_pytree():
+    import jax
+
+    cfg = _config()
+    state = mfmjax.online.init(cfg)
+    state2, out = mfmjax.online.update(state, np.arange(10.0), np.zeros(10), np.zeros((10, 2)))
+    assert int(state.n_seen) == 0 and int(state2.n_seen) == 10  # the old state is untouched
+    assert len(out.events) == 0 and out.t.shape == (0,)
+    assert all(isinstance(x, np.ndarray) for x in jax.tree_util.tree_leaves(state2))
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(interval=250.5), "whole number"),
+        (dict(tr_corr=1.5), "tr_corr"),
+        (dict(T_obinit=5000.0), "T_obinit"),
+        (dict(h=(600.0,)), "half the re-identification window"),
+        (dict(delays=(1.0,)), "delays needs one entry"),
+        (dict(steady_var=(1.0,)), "steady_var"),
+    ],
+)
+def test_config_errors(kw, match):
+    with pytest.raises(ValueError, match=match):
+        _config(**kw)
+
+
+def test_update_errors():
+    state = mfmjax.online.init(_config())
+    with pytest.raises(ValueError, match="sampling grid"):
+        mfmjax.online.update(state, [0.0, 1.5], [0.0, 0.0], np.zeros((2, 2)))
+    state, _ = mfmjax.online.update(state, [0.0, 1.0], [0.0, 0.0], np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="increase"):
+        mfmjax.online.update(state, [1.0], [0.0], np.zeros((1, 2)))
+    with pytest.raises(ValueError, match=r"u \(P, 2\)"):
+        mfmjax.online.update(state, [2.0], [0.0], np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="not an mfmjax on-line checkpoint"):
+        import tempfile
+
+        with tempfile.NamedTemporaryFile(suffix=".npz") as f:
+            np.savez(f, header=np.asarray('{"format": "x"}'))
+            f.flush()
+            mfmjax.online.load(f.name)
