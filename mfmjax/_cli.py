@@ -109,6 +109,91 @@ def _cmd_demo(args):
     print(f"\nJ = {float(model.J):.3e}   cond(equilibrated G) = {float(model.cond):.2e}")
 
 
+def _online_config(args, K: int, dt: float, names):
+    from ._online import OnlineConfig
+
+    kwargs = {}
+    if args.config:
+        import tomllib
+
+        try:
+            with open(args.config, "rb") as fh:
+                kwargs = tomllib.load(fh)
+        except OSError as err:
+            raise _UserError(f"--config: cannot read {args.config}: {err.strerror}") from None
+        except tomllib.TOMLDecodeError as err:
+            raise _UserError(f"--config: {args.config} is not valid TOML ({err})") from None
+        kwargs = kwargs.get("online", kwargs)
+    if args.delays:
+        kwargs["delays"] = _floats(args.delays, "delays")
+    if args.intersample:
+        kwargs["intersample"] = [s.strip() for s in args.intersample.split(",")]
+    known = set(OnlineConfig.__dataclass_fields__) - {"dt", "n_inputs"}
+    bad = sorted(set(kwargs) - known)
+    if bad:
+        raise _UserError(f"--config: unknown setting(s) {bad}; known: {sorted(known)}")
+    kwargs.setdefault("input_names", names[1])
+    kwargs.setdefault("output_name", names[0])
+    return OnlineConfig(dt=dt, n_inputs=K, **kwargs)
+
+
+def _cmd_online(args):
+    import os
+
+    from ._online import OnlineIdentifier, model_table
+    from ._signals import read_csv
+
+    cols = read_csv(args.file, [c.strip() for c in args.names.split(",")] if args.names else None)
+    inputs = [c.strip() for c in args.inputs.split(",") if c.strip()]
+    for c in [args.output, *inputs] + ([args.time] if args.time else []):
+        if c not in cols:
+            raise _UserError(f"{args.file}: no column {c!r}; columns are {sorted(cols)}")
+    if not inputs:
+        raise _UserError("--inputs: the on-line identifier needs at least one input")
+    y = cols[args.output]
+    u = np.column_stack([cols[c] for c in inputs])
+    if args.time:
+        t = cols[args.time]
+        dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    elif args.dt:
+        dt = args.dt
+        t = np.arange(y.size) * dt
+    else:
+        raise _UserError("give --time COLUMN or --dt SECONDS")
+    if args.checkpoint and os.path.exists(args.checkpoint):
+        ident = OnlineIdentifier.load(args.checkpoint)
+        st = ident.state
+        if ident.state.config.n_inputs != u.shape[1]:
+            raise _UserError("--checkpoint: it was written for a different number of inputs")
+        done = float(st.t0) + (int(st.n_seen) - 0.5) * st.config.dt
+        keep = t > done  # continue after the samples the checkpoint has seen
+        t, y, u = t[keep], y[keep], u[keep]
+    else:
+        ident = OnlineIdentifier(_online_config(args, u.shape[1], dt, (args.output, inputs)))
+    chunk = max(ident.state.config.samples, 1)
+    progress = _Progress("online") if not args.json else None
+    for c0 in range(0, t.size, chunk):
+        ident.update(t[c0 : c0 + chunk], y[c0 : c0 + chunk], u[c0 : c0 + chunk])
+        if progress is not None:
+            progress(min(c0 + chunk, t.size), t.size)
+    if args.checkpoint:
+        ident.save(args.checkpoint)
+    mse = ident.mse()
+    res = {"mse": mse if np.isfinite(mse) else None, "models": ident.models,
+           "intervals": len(ident.events)}
+    if args.plot:
+        from ._plotting import plot_online
+
+        plot_online(ident.series(), ident.models, args.plot, ylabel=args.output,
+                    title=f"on-line prediction, MSE {mse:.4g}")
+        res["plot"] = args.plot
+    if args.json:
+        print(json.dumps(res))
+    else:
+        print(model_table(ident.models, end=ident._end()))
+        print(f"\nmean square prediction error: {mse:.6g} over {len(ident.events)} intervals")
+
+
 def _grid(text: str, name: str, integer: bool = False) -> list:
     """'a:b' (inclusive integer range) or 'a,b,c' (list)."""
     text = text.strip()
@@ -276,13 +361,20 @@ def main(argv=None) -> int:
     p.add_argument("--plot", help="write measured vs simulated output to this PNG")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_validate)
+    p = sub.add_parser("online", help="on-line identification and prediction (Algorithm 1)")
+    _add_data_args(p)
+    p.add_argument("--config", help="TOML file of OnlineConfig settings (e.g. interval = 250)")
+    p.add_argument("--plot", help="write the prediction figure (paper's Fig. 3) to this PNG")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--checkpoint", help="resume from this state file if it exists; save to it")
+    p.set_defaults(func=_cmd_online)
     p = sub.add_parser("demo", help="run the built-in demonstration")
     p.add_argument("--out", help="directory for result files")
     p.set_defaults(func=_cmd_demo)
     try:
         args = parser.parse_args(argv)
         if args.command is None:
-            raise _UserError("mfmjax: give a command: identify, search, validate, demo (see --help)")
+            raise _UserError("mfmjax: give a command: identify, search, validate, online, demo (see --help)")
         for name in ("N", "M"):
             val = getattr(args, name, None)
             if isinstance(val, float) and val == int(val):

@@ -553,27 +553,36 @@ def update(state: OnlineState, t, y, u):
 # -- checkpoints -------------------------------------------------------------------------------
 
 
-def save(path, state: OnlineState) -> None:
-    """Write the whole state (configuration included) to one `.npz` file."""
+def save(path, state: OnlineState, extra: dict | None = None) -> None:
+    """Write the whole state (configuration included) to one `.npz` file (`extra`: any JSON
+    data to keep with it, e.g. the wrapper's model records)."""
     leaves = jax.tree_util.tree_leaves(state)
-    header = json.dumps({"format": FORMAT, "version": VERSION, "config": state.config.to_dict()})
+    header = json.dumps({"format": FORMAT, "version": VERSION, "config": state.config.to_dict(),
+                         "extra": extra or {}})
     with open(path, "wb") as fh:
         np.savez(fh, header=np.asarray(header), **{f"leaf{i}": np.asarray(v)
                                                    for i, v in enumerate(leaves)})
 
 
-def load(path) -> OnlineState:
-    """Read a state written by `save`; resuming from it continues exactly where it stopped."""
-    with np.load(path, allow_pickle=False) as f:
-        header = json.loads(str(f["header"]))
+def _load(path):
+    try:
+        f = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise ValueError(f"load(): cannot read {path} ({err})") from None
+    with f:
+        header = json.loads(str(f["header"])) if "header" in f else {}
         if header.get("format") != FORMAT or header.get("version") != VERSION:
             raise ValueError(f"load(): {path} is not an mfmjax on-line checkpoint (v{VERSION})")
-        config = OnlineConfig(**header["config"])
-        like = init(config)
+        like = init(OnlineConfig(**header["config"]))
         leaves, treedef = jax.tree_util.tree_flatten(like)
         new = [np.asarray(f[f"leaf{i}"]).astype(np.asarray(v).dtype).reshape(np.shape(v))
                for i, v in enumerate(leaves)]
-    return jax.tree_util.tree_unflatten(treedef, new)
+    return jax.tree_util.tree_unflatten(treedef, new), header.get("extra", {})
+
+
+def load(path) -> OnlineState:
+    """Read a state written by `save`; resuming from it continues exactly where it stopped."""
+    return _load(path)[0]
 
 
 # -- convenience wrapper ------------------------------------------------------------------------
@@ -635,11 +644,15 @@ class OnlineIdentifier:
         return float(self.state.t0) + n * self.state.config.dt if n else None
 
     def save(self, path) -> None:
-        save(path, self.state)
+        """The state plus the model records (the prediction series is not saved)."""
+        save(path, self.state, extra={"models": self.models})
 
     @classmethod
     def load(cls, path, keep_history: bool = True) -> OnlineIdentifier:
-        return cls(state=load(path), keep_history=keep_history)
+        state, extra = _load(path)
+        ident = cls(state=state, keep_history=keep_history)
+        ident.models = list(extra.get("models", []))
+        return ident
 
 
 def model_table(models, end=None) -> str:
