@@ -92,21 +92,11 @@ def _cmd_identify(args):
 
 
 def _cmd_demo(args):
-    import mfmjax
-    from mfmjax import datasets
+    from ._demo import demo
 
-    true = datasets.paper_table3_model1()
-    sig = datasets.simulated_experiment(true, dt=2.5, n_samples=3000, x0=[0.0, 0.0])
-    model = mfmjax.identify(sig, mfmjax.Structure(2, (0, 0)), mfmjax.ModulatingFunction(3, 4, 200.0))
-    print("mfmjax demo: identify the paper's Table 3 model 1 (2nd order, 2 inputs: foh, zoh)")
-    print(f"from {sig.n_samples} noise-free samples, dt={sig.dt:g} s, N=3, M=4, h=200 s\n")
-    names = ["a_0", "a_1", "a_2", "b_10", "b_20"]
-    t_vals = np.concatenate([np.asarray(true.a)] + [np.asarray(b) for b in true.b])
-    e_vals = np.concatenate([np.asarray(model.a)] + [np.asarray(b) for b in model.b])
-    print(f"{'parameter':<10}{'true':>14}{'identified':>16}{'rel. error':>12}")
-    for name, tv, ev in zip(names, t_vals, e_vals):
-        print(f"{name:<10}{tv:>14.6e}{ev:>16.9e}{abs(ev - tv) / abs(tv):>12.1e}")
-    print(f"\nJ = {float(model.J):.3e}   cond(equilibrated G) = {float(model.cond):.2e}")
+    if args.horizon is not None and args.horizon < 2500:
+        raise _UserError("--horizon: at least 2500 s (the first model needs 8 intervals)")
+    demo(args.out, args.horizon)
 
 
 def _online_config(args, K: int, dt: float, names):
@@ -192,6 +182,25 @@ def _cmd_online(args):
     else:
         print(model_table(ident.models, end=ident._end()))
         print(f"\nmean square prediction error: {mse:.6g} over {len(ident.events)} intervals")
+
+
+def _cmd_dataset(args):
+    from .datasets import forehearth
+
+    if args.name != "forehearth":
+        raise _UserError(f"dataset: unknown dataset {args.name!r}; available: forehearth")
+    d = forehearth(args.experiment, seed=args.seed)
+    cols = ["time", *d["names"]] + (["pull_rate"] if args.with_pull else [])
+    data = np.column_stack([d["t"], d["y"], d["u"]] + ([d["pull"]] if args.with_pull else []))
+    try:
+        with open(args.o, "w") as fh:
+            fh.write(",".join(cols) + "\n")
+            for row in data:
+                fh.write(",".join(repr(float(v)) for v in row) + "\n")
+    except OSError as err:
+        raise _UserError(f"-o: cannot write {args.o}: {err.strerror}") from None
+    print(f"wrote {args.o}: {data.shape[0]} samples at 1 s, columns {', '.join(cols)} "
+          f"(input-1 delay {d['delay'].min():.0f}-{d['delay'].max():.0f} s)")
 
 
 def _grid(text: str, name: str, integer: bool = False) -> list:
@@ -368,13 +377,23 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--checkpoint", help="resume from this state file if it exists; save to it")
     p.set_defaults(func=_cmd_online)
+    p = sub.add_parser("dataset", help="write a built-in simulated dataset to CSV")
+    p.add_argument("name", help="forehearth")
+    p.add_argument("--experiment", type=int, default=1, choices=[1, 2])
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--with-pull", action="store_true", help="add the (unmeasured) pull rate")
+    p.add_argument("-o", required=True, help="CSV file to write")
+    p.set_defaults(func=_cmd_dataset)
     p = sub.add_parser("demo", help="run the built-in demonstration")
-    p.add_argument("--out", help="directory for result files")
+    p.add_argument("--out", default="mfmjax-demo", help="directory for the PNGs and JSON "
+                   "(default ./mfmjax-demo)")
+    p.add_argument("--horizon", type=float, help="stop each experiment after this many seconds")
     p.set_defaults(func=_cmd_demo)
     try:
         args = parser.parse_args(argv)
         if args.command is None:
-            raise _UserError("mfmjax: give a command: identify, search, validate, online, demo (see --help)")
+            raise _UserError("mfmjax: give a command: identify, search, validate, online, "
+                             "dataset, demo (see --help)")
         for name in ("N", "M"):
             val = getattr(args, name, None)
             if isinstance(val, float) and val == int(val):

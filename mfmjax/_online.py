@@ -178,8 +178,12 @@ class OnlineConfig(eqx.Module):
         return max(self.n)
 
     @property
-    def margin(self) -> int:  # input history the delayed inputs need before a window
-        return math.ceil(max(self.delays) / self.dt) + 1
+    def span_bound(self) -> float:  # h + delay < this (checked): fixes the compiled shapes
+        return self.n_reident * self.interval / 2
+
+    @property
+    def margin(self) -> int:  # input history the delayed inputs may need before a window
+        return math.ceil(self.span_bound / self.dt) + 1
 
     @property
     def ob_final(self) -> int:
@@ -271,7 +275,7 @@ def _plan_for(config: OnlineConfig, intervals: int):
         template, n=config.n, N=config.N, M=config.M, h=config.h, m=config.m,
         delays=[[d] for d in config.delays], score="E", validate=None,
         observer_window=min(config.T_obinit, (L - 1) * config.dt), eta=eta,
-        chunk_size=len(config.h), simulate=True,
+        chunk_size=len(config.h), simulate=True, span_bound=config.span_bound,
     )
 
 

@@ -461,8 +461,11 @@ class _Plan(NamedTuple):
 
 
 def _plan(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
-          chunk_size, simulate) -> _Plan:
-    """Check the grid against the record's shape and build the static parts of `search`."""
+          chunk_size, simulate, span_bound: float = 0.0) -> _Plan:
+    """Check the grid against the record's shape and build the static parts of `search`.
+
+    `span_bound` (time units) pads the kernels to at least this h + delay, so that plans with
+    different delays share one compilation (the on-line identifier)."""
     if not isinstance(signals, Signals):
         raise TypeError("search(): signals must be a Signals")
     if score not in SCORES:
@@ -564,7 +567,7 @@ def _plan(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_
     nm = {"N": jnp.asarray([a for a, _ in nm_pairs]), "M": jnp.asarray([b for _, b in nm_pairs]),
           "coef": jnp.asarray(coef)}
     static = _Static(
-        n_max, m_max, ft_inputs, kernel_length(h_max + delay_max, dt), degree, tuple(sources),
+        n_max, m_max, ft_inputs, kernel_length(max(h_max + delay_max, span_bound), dt), degree, tuple(sources),
         tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]), v0, v_len, ob,
         bool(simulate), 64,
     )

@@ -1,0 +1,65 @@
+"""Loaders for the real DaISy records used in the README's validation table.
+
+The files are not redistributed with mfmjax (DaISy states no license; its terms ask users to
+cite it, see each dataset's README). They are read from `path`, else from the folder named by
+the environment variable `MFMJAX_DATA`, else from `../shared/data` beside a source checkout.
+Citation: De Moor B.L.R. (ed.), DaISy: Database for the Identification of Systems, ESAT/STADIUS,
+KU Leuven, http://homes.esat.kuleuven.be/~smc/daisy/.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from .._signals import Signals, read_csv
+
+# name: (folder, file, columns, output, inputs, dt, intersample, description)
+DAISY = {
+    "heat_exchanger": ("daisy-heat-exchanger", "exchanger.dat", ["t", "q", "theta"], "theta",
+                       ["q"], 1.0, "foh", "liquid-saturated steam heat exchanger (97-002): "
+                       "flow rate -> outlet temperature, Ts = 1 s"),
+    "dryer": ("daisy-industrial-dryer", "dryer2.dat",
+              ["k", "fuel", "fan", "feed", "dry_bulb", "wet_bulb", "moisture"], "dry_bulb",
+              ["fuel", "fan", "feed"], 10.0, "zoh", "industrial dryer: fuel, fan speed, raw "
+              "material flow -> dry-bulb temperature, Ts = 10 s"),
+    "glass_furnace": ("daisy-glass-furnace", "glassfurnace.dat",
+                      ["k", "heat1", "cool", "heat2", "y1", "y2", "y3", "y4", "y5", "y6"], "y1",
+                      ["heat1", "cool", "heat2"], 1.0, "zoh", "glass furnace (Philips): two "
+                      "heating inputs, one cooling input -> temperature y1, Ts = 1 sample"),
+    "heating_system": ("daisy-heating-system", "heating_system.dat", ["t", "u", "y"], "y", ["u"],
+                       2.0, "zoh", "heating system: lamp voltage -> plate temperature, "
+                       "Ts = 2 s"),
+}
+
+
+def _locate(folder: str, file: str, path) -> str:
+    here = os.path.dirname(os.path.abspath(__file__))
+    candidates = [path] if path is not None else []
+    if os.environ.get("MFMJAX_DATA"):
+        candidates.append(os.path.join(os.environ["MFMJAX_DATA"], folder, file))
+        candidates.append(os.path.join(os.environ["MFMJAX_DATA"], file))
+    for root in (os.getcwd(), os.path.join(here, "..", "..")):
+        candidates.append(os.path.join(root, "..", "shared", "data", folder, file))
+    for c in candidates:
+        if c is not None and os.path.isfile(c):
+            return c
+    raise FileNotFoundError(
+        f"daisy(): cannot find {folder}/{file}; download it from DaISy "
+        "(http://homes.esat.kuleuven.be/~smc/daisy/) and pass path=..., or set MFMJAX_DATA"
+    )
+
+
+def daisy(name: str, *, path=None, offset: bool = True, output: str | None = None) -> Signals:
+    """One DaISy record as `Signals` (`name` in `DAISY`: heat_exchanger, dryer, glass_furnace,
+    heating_system). `output` picks another output column (e.g. "wet_bulb", "y3")."""
+    if name not in DAISY:
+        raise ValueError(f"daisy(): unknown dataset {name!r}; use one of {sorted(DAISY)}")
+    folder, file, cols, out, inputs, dt, inter, _ = DAISY[name]
+    data = read_csv(_locate(folder, file, path), names=cols)
+    out = output or out
+    if out not in data or out in inputs:
+        raise ValueError(f"daisy(): {name} has no output column {out!r}")
+    return Signals(data[out], np.column_stack([data[c] for c in inputs]), dt=dt,
+                   intersample=inter, offset=offset, output_name=out, input_names=inputs)
