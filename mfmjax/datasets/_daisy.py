@@ -36,14 +36,19 @@ DAISY = {
 
 def _locate(folder: str, file: str, path) -> str:
     here = os.path.dirname(os.path.abspath(__file__))
-    candidates = [path] if path is not None else []
+    if path is not None:
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"daisy(): no file {path}; give the DaISy file's path, or "
+                                    "leave path out to search MFMJAX_DATA and ../shared/data")
+        return str(path)
+    candidates = []
     if os.environ.get("MFMJAX_DATA"):
         candidates.append(os.path.join(os.environ["MFMJAX_DATA"], folder, file))
         candidates.append(os.path.join(os.environ["MFMJAX_DATA"], file))
     for root in (os.getcwd(), os.path.join(here, "..", "..")):
         candidates.append(os.path.join(root, "..", "shared", "data", folder, file))
     for c in candidates:
-        if c is not None and os.path.isfile(c):
+        if os.path.isfile(c):
             return c
     raise FileNotFoundError(
         f"daisy(): cannot find {folder}/{file}; download it from DaISy "

@@ -1,0 +1,78 @@
+"""Simulated forehearth (physics sanity, determinism, the paper's delay ranges) and DaISy loaders."""
+
+import os
+
+import numpy as np
+import pytest
+from conftest import SHARED
+
+from mfmjax.datasets import DAISY, daisy, forehearth, transport_delay
+from mfmjax.datasets import _forehearth as F
+
+
+@pytest.fixture(scope="module")
+def exp1():
+    return forehearth(1, seed=3)
+
+
+def test_forehearth_shapes_and_determinism(exp1):
+    assert exp1["t"].shape == (8001,) and exp1["u"].shape == (8001, 2)
+    np.testing.assert_array_equal(forehearth(1, seed=3)["y"], exp1["y"])
+    assert not np.array_equal(forehearth(1, seed=4)["y"], exp1["y"])
+    assert forehearth(2)["t"][-1] == 9500.0
+    assert np.all(np.isfinite(exp1["y"])) and np.all(np.isfinite(exp1["u"]))
+
+
+def test_forehearth_pull_and_delay_match_the_paper(exp1):
+    assert exp1["pull"][0] == 82 and exp1["pull"][-1] == 60
+    # the paper: 260-319 s for 82 -> 60 t/24h and 313-337 s for 62 -> 55 t/24h
+    assert 260 <= exp1["delay"].min() and exp1["delay"].max() <= 320
+    d2 = forehearth(2)["delay"]
+    assert 312 <= d2.min() and d2.max() <= 338
+    # delay = thermocouple distance / transport velocity (mean flow + convective drift)
+    v = 82 * 1000 / 86400 / (F.RHO * F.WIDTH * F.DEPTH) + F.V_CONV
+    assert transport_delay(82) == pytest.approx(F.X_TC / v, rel=1e-12)
+
+
+def test_forehearth_starts_at_rest_on_the_setpoint(exp1):
+    # the initial state is the plant's steady state with the controller in balance
+    y0 = exp1["y"][:200]
+    assert abs(y0.mean() - 1164.0) < 0.1 and y0.std() < 0.2
+    p0 = exp1["u"][:200, 1]
+    assert F.P_MIN < p0.mean() < F.P_MAX and p0.std() < 0.2
+
+
+def test_forehearth_physics_directions():
+    # energy balance at rest: the outlet is cooler than the inlet by the losses minus the heat
+    v = F._velocity(70.0)
+    tau = F.X_TC / v
+    k_loss = F.U_LOSS / (F.RHO * F.CP * F.DEPTH)
+    loss = k_loss * (1165 - F.T_AMB) * tau  # degC lost on the way to the thermocouple
+    heat = F.Q_NOM / (F.RHO * F.CP * F.DEPTH) * tau
+    assert 5 < loss < 40 and 5 < heat < 40  # same order: the burner compensates the losses
+    # lower pull -> longer residence -> the controller needs more gas (experiment 1, 82 -> 60)
+    d = forehearth(1)
+    assert d["u"][-500:, 1].mean() > d["u"][200:700, 1].mean() - 1.0
+
+
+def test_forehearth_errors():
+    with pytest.raises(ValueError, match="experiment must be 1 or 2"):
+        forehearth(3)
+
+
+@pytest.mark.skipif(not os.path.isdir(SHARED), reason="shared data not present")
+@pytest.mark.parametrize("name, T, K, dt", [
+    ("heat_exchanger", 4000, 1, 1.0), ("dryer", 867, 3, 10.0), ("glass_furnace", 1247, 3, 1.0),
+    ("heating_system", 801, 1, 2.0),
+])
+def test_daisy_loaders(name, T, K, dt):
+    sig = daisy(name)
+    assert (sig.n_samples, sig.n_inputs, sig.dt) == (T, K, dt) and sig.offset
+    assert sig.output_name == DAISY[name][3]
+
+
+def test_daisy_errors(tmp_path):
+    with pytest.raises(ValueError, match="unknown dataset"):
+        daisy("nope")
+    with pytest.raises(FileNotFoundError, match="MFMJAX_DATA"):
+        daisy("dryer", path=str(tmp_path / "missing.dat"))
