@@ -31,6 +31,12 @@ from ._online import OnlineState as OnlineState  # noqa: E402
 from ._persist import load_model as load_model  # noqa: E402
 from ._persist import save_model as save_model  # noqa: E402
 from ._quadrature import kernel_weights as kernel_weights  # noqa: E402
+from ._refine import OutputError as OutputError  # noqa: E402
+from ._refine import Refinement as Refinement  # noqa: E402
+from ._refine import cramer_rao as cramer_rao  # noqa: E402
+from ._refine import output_error as output_error  # noqa: E402
+from ._refine import refine as refine  # noqa: E402
+from ._refine import scores as scores  # noqa: E402
 from ._search import SearchResult as SearchResult  # noqa: E402
 from ._search import search as search  # noqa: E402
 from ._signals import Signals as Signals  # noqa: E402

@@ -404,8 +404,10 @@ def _prediction(state: OnlineState, j: int):
     if start < 0 or start < int(state.n_seen) - c.buffer:
         return None, "no prediction: not enough history for the final-state observer"
     y, u = _take(state, start, mg + ob + S)
-    y = y.copy()
-    y[mg + ob:] = 0.0  # the predicted interval's outputs are not used
+    y, u = y.copy(), u.copy()
+    y[: mg], y[mg + ob :] = 0.0, 0.0  # outputs outside the observer window are not used
+    need = math.ceil(max(c.delays) / c.dt) + 1  # input history the delays really reach
+    u[: mg - need] = 0.0  # (the margin is sized for the largest allowed delay)
     if not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
         return None, "no prediction: NaN samples in the observer window or inputs"
     sig = _window_signals(c, y, u, 0.0)
