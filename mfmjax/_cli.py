@@ -80,15 +80,53 @@ def _cmd_identify(args):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model = mfmjax.identify(sig, structure, mf)
+    report = _refine_report(sig, model, bool(args.delays)) if args.refine else None
     if args.save:
         from ._persist import save_model
 
-        save_model(model, args.save)
+        save_model(report["model"] if report else model, args.save)
     if args.json:
-        print(json.dumps(model.to_dict()))
+        out = model.to_dict()
+        if report:
+            out["refined"] = {k: v for k, v in report.items() if k != "model"}
+        print(json.dumps(out))
     else:
         print(f"{args.file}: {sig.n_samples} samples, dt={sig.dt:g}, K={sig.n_inputs}")
         print(model.summary())
+        if report:
+            _print_report(report)
+
+
+def _refine_report(sig, model, vary_delays: bool) -> dict:
+    """refine (h, N, M[, delays]) by BFGS on E, then output-error LM on the parameters."""
+    import mfmjax
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        vary = ("h", "N", "M") + (("delays",) if vary_delays else ())
+        r = mfmjax.refine(sig, model, vary=vary)
+        oe = mfmjax.output_error(sig, r.model)
+    E0 = float(mfmjax.performance_index(model, sig))
+    E1 = float(mfmjax.performance_index(r.model, sig))
+    return {
+        "model": oe.model, "settings": r.settings, "start_settings": r.start_settings,
+        "refine_result": r.result, "refine_steps": r.steps, "E_mfm": E0, "E_refined": E1,
+        "E_output_error": oe.E, "output_error_result": oe.result,
+        "parameters": {name: {"value": float(v), "std_error": float(e)}
+                       for name, v, e in zip(oe.names, oe.theta, oe.std_errors)},
+    }
+
+
+def _print_report(rep: dict) -> None:
+    s = rep["settings"]
+    delays = ",".join(f"{d:.4g}" for d in s["delays"]) if s["delays"] else "-"
+    print(f"\nrefined settings (BFGS on E: {rep['refine_result']}, {rep['refine_steps']} steps): "
+          f"N={s['N']:.4g} M={s['M']:.4g} h={s['h']:.5g} delays={delays}")
+    print(f"E (eq. 17): MFM {rep['E_mfm']:.6g} -> refined settings {rep['E_refined']:.6g} -> "
+          f"output error {rep['E_output_error']:.6g} ({rep['output_error_result']})")
+    print(f"{'parameter':<10}{'output error':>16}{'std. error':>14}")
+    for name, p in rep["parameters"].items():
+        print(f"{name:<10}{p['value']:>16.6e}{p['std_error']:>14.3e}")
 
 
 def _cmd_demo(args):
@@ -277,16 +315,32 @@ def _cmd_search(args):
             raise _UserError("--validate: expected T0,T1")
         kwargs["validate"] = tuple(window)
     result = mfmjax.search(sig, progress=_Progress("search"), **kwargs)
+    report = None
+    if args.refine:
+        best = result.best()
+        sig_best = _with_delays(sig, best.delays)
+        report = _refine_report(sig_best, best, bool(grid_delays))
     if args.save:
         from ._persist import save_model
 
-        save_model(result.best(), args.save)
+        save_model(report["model"] if report else result.best(), args.save)
     if args.json:
-        print(result.to_json(top=args.top))
+        out = result.to_dict(top=args.top)
+        if report:
+            out["refined"] = {k: v for k, v in report.items() if k != "model"}
+        print(json.dumps(out))
     else:
         print(f"{len(result)} candidates, ranked by {args.score} "
               f"(compile {result.compile_s:.1f} s, run {result.run_s:.1f} s)")
         print(result.table(args.top))
+        if report:
+            _print_report(report)
+
+
+def _with_delays(sig, delays):  # a Signals with other delays
+    import equinox as eqx
+
+    return eqx.tree_at(lambda q: q.delays, sig, delays)
 
 
 def _cmd_validate(args):
@@ -348,6 +402,8 @@ def main(argv=None) -> int:
     p.add_argument("--h", type=float, required=True, help="modulating function width h")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--save", help="write the model to this JSON file")
+    p.add_argument("--refine", action="store_true", help="refine h, N, M (and delays) by "
+                   "gradient, then the parameters by output error, with standard errors")
     p.set_defaults(func=_cmd_identify)
     p = sub.add_parser("search", help="batched search over orders and MF settings")
     _add_data_args(p)
@@ -362,6 +418,8 @@ def main(argv=None) -> int:
     p.add_argument("--top", type=int, default=10, help="rows to print")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--save", help="write the best model to this JSON file")
+    p.add_argument("--refine", action="store_true", help="refine the best candidate's settings "
+                   "by gradient, then its parameters by output error")
     p.set_defaults(func=_cmd_search)
     p = sub.add_parser("validate", help="E, fit % and observed x0 of a saved model on a record")
     _add_data_args(p)

@@ -158,7 +158,7 @@ def _value(fn, z):
 def refine(
     signals: Signals, start: Model, *, score: str = "E", vary=SETTINGS, bounds: dict | None = None,
     validate=None, observer_window=None, max_steps: int = 40, rtol: float = 1e-6,
-    atol: float = 1e-8,
+    atol: float = 1e-8, top: int = 3,
 ) -> Refinement:
     r"""Refine the modulating-function settings (and delays) of `start` by gradient descent.
 
@@ -169,11 +169,22 @@ def refine(
     any of them as {"h": (lo, hi), ...}. Every setting is a sigmoid of an unconstrained
     variable, so the iterates never leave the box.
 
-    A refinement that fails (solver error, non-finite score, or no improvement) returns the
-    starting model, with the solver's code in `result`.
+    `start` may be a `SearchResult`: its best `top` candidates are refined and the refinement
+    with the lowest score is returned. A refinement that fails (solver error, non-finite score,
+    or no improvement) returns the starting model, with the solver's code in `result`.
     """
+    from ._search import SearchResult
+
+    if isinstance(start, SearchResult):  # refine the best `top` candidates, keep the best
+        if len(start) == 0:
+            raise ValueError("refine(): the search result is empty")
+        runs = [refine(signals, start.best(i), score=score, vary=vary, bounds=bounds,
+                       validate=validate, observer_window=observer_window,
+                       max_steps=max_steps, rtol=rtol, atol=atol)
+                for i in range(min(top, len(start)))]
+        return min(runs, key=lambda r: float(r.path.min()))
     if not isinstance(start, Model) or start.mf is None:
-        raise TypeError("refine(): start must be a Model from identify or SearchResult.best()")
+        raise TypeError("refine(): start must be a Model from identify or a SearchResult")
     if score not in ("E", "J"):
         raise ValueError(f"refine(): score must be 'E' or 'J' (got {score!r})")
     bad = sorted(set(vary) - set(SETTINGS))

@@ -1,0 +1,168 @@
+"""Gradients of the scores (finite differences), refine, output-error estimation, Cramer-Rao bound,
+delay estimation.
+
+Finite differences are central, float64. The scores are evaluated at settings where tau + h is
+not on the sample grid (the cubic rule's stencil switches there, a documented O(dt^4) kink); the
+step (1e-6 relative) is far from the next switch. Error bound: truncation O(delta^2) ~ 1e-12
+relative plus rounding ~ (noise of one evaluation ~ cond * eps ~ 1e-12) / 1e-6 ~ 1e-6 relative,
+hence rtol = 1e-5 below.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import reference as R
+
+import mfmjax
+from mfmjax import ModulatingFunction, Signals, Structure
+from mfmjax.datasets import paper_table3_model1, simulated_experiment
+
+ST = Structure(2, (0, 0))
+FD_RTOL = 1e-5
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    true = paper_table3_model1()
+    clean = simulated_experiment(true, dt=2.5, n_samples=1600, x0=[0.0, 0.0], seed=0)
+    sd = float(np.std(clean.y)) / 10 ** (20 / 20)  # SNR 20 dB
+    y = np.asarray(clean.y) + sd * np.random.default_rng(0).standard_normal(1600)
+    return true, Signals(y, clean.u, dt=2.5, intersample=clean.intersample), sd
+
+
+def _packed(sig):
+    """[J_rel, E, fit] as a function of v = [h, N, M, tau_1, tau_2, eta_1..eta_5]."""
+
+    def f(v):
+        out = mfmjax.scores(sig, ST, h=v[0], N=v[1], M=v[2], delays=v[3:5], eta=v[5:],
+                            h_max=300.0, delay_max=30.0, validate=(500.0, 3997.5),
+                            observer_window=1500.0)
+        return jnp.stack([out["J_rel"], out["E"], out["fit"]])
+
+    return f
+
+
+V0 = np.array([201.3, 3.0, 4.0, 10.7, 5.3, 1.0, 1.0, 1.0, 1.0, 1.0])
+
+
+def _central(f, v, i, rel=1e-6):
+    d = rel * max(abs(v[i]), 1.0)
+    vp, vm = v.copy(), v.copy()
+    vp[i] += d
+    vm[i] -= d
+    return (np.asarray(f(vp)) - np.asarray(f(vm))) / (2 * d)
+
+
+def test_scores_jacfwd_equals_finite_differences(noisy):
+    _, sig, _ = noisy
+    f = jax.jit(_packed(sig))
+    J = np.asarray(jax.jacfwd(f)(jnp.asarray(V0)))  # (3 scores, 10 settings)
+    for i in range(V0.size):
+        fd = _central(f, V0, i)
+        scale = np.abs(J).max(axis=1) + 1e-300  # each score's largest derivative
+        np.testing.assert_allclose(J[:, i] / scale, fd / scale, atol=FD_RTOL, err_msg=f"v[{i}]")
+    assert np.all(np.abs(J[1, :5]) > 0)  # E really depends on h, N, M and both delays
+
+
+def test_scores_grad_reverse_mode_and_data(noisy):
+    _, sig, _ = noisy
+
+    def E_of(v, y):
+        s = Signals(y, sig.u, dt=sig.dt, intersample=sig.intersample)
+        return _packed(s)(v)[1]
+
+    y0 = jnp.asarray(sig.y)
+    g_v, g_y = jax.jit(jax.grad(E_of, argnums=(0, 1)))(jnp.asarray(V0), y0)
+    fwd = jax.jacfwd(lambda v: E_of(v, y0))(jnp.asarray(V0))
+    np.testing.assert_allclose(np.asarray(g_v), np.asarray(fwd), rtol=1e-9, atol=1e-12)
+    # the data: directional derivative along a random direction against central differences
+    direction = np.random.default_rng(3).standard_normal(y0.shape[0])
+    d = 1e-6 * float(jnp.std(y0))
+    E = jax.jit(lambda y: E_of(jnp.asarray(V0), y))
+    fd = (float(E(y0 + d * direction)) - float(E(y0 - d * direction))) / (2 * d)
+    assert float(jnp.dot(g_y, direction)) == pytest.approx(fd, rel=FD_RTOL)
+
+
+def test_refine_improves_and_respects_bounds(noisy):
+    _, sig, _ = noisy
+    start = mfmjax.identify(sig, ST, ModulatingFunction(3, 4, 200.0))
+    bounds = {"h": (150.0, 230.0), "N": (2.0, 5.0), "M": (2.0, 6.0)}
+    r = mfmjax.refine(sig, start, vary=("h", "N", "M"), bounds=bounds, max_steps=15)
+    assert r.result in ("successful", "max_steps_reached")
+    assert r.path[-1] <= r.path[0] and r.improved
+    for key, (lo, hi) in bounds.items():
+        assert lo <= r.settings[key] <= hi
+    E_ref = mfmjax.performance_index(r.model, sig)
+    E_start = mfmjax.performance_index(start, sig)
+    assert float(E_ref) < float(E_start)
+
+
+def test_refine_failure_returns_start(noisy):
+    _, sig, _ = noisy
+    start = mfmjax.identify(sig, ST, ModulatingFunction(3, 4, 200.0))
+    r = mfmjax.refine(sig, start, vary=("h",), max_steps=0)
+    assert r.model is start and r.result == "max_steps_reached" and not r.improved
+    with pytest.raises(ValueError, match="must lie in its bounds"):
+        mfmjax.refine(sig, start, vary=("h",), bounds={"h": (10.0, 100.0)})
+    with pytest.raises(ValueError, match="vary must name"):
+        mfmjax.refine(sig, start, vary=("q",))
+
+
+def test_output_error_removes_bias_and_reports_errors(noisy):
+    true, sig, sd = noisy
+    start = mfmjax.identify(sig, ST, ModulatingFunction(3, 4, 200.0))
+    oe = mfmjax.output_error(sig, start)
+    assert oe.result == "successful" and oe.E <= oe.E_start
+    assert oe.names == ("a_0", "a_1", "b_10", "b_20")
+    truth = np.array([true.a[0], true.a[1], true.b[0][0], true.b[1][0]])
+    err = np.abs(oe.theta - truth)
+    assert np.all(err < 4 * oe.std_errors)  # within 4 standard errors
+    assert oe.sigma2 == pytest.approx(sd**2, rel=0.15)  # residual variance = the noise
+    names, crb = mfmjax.cramer_rao(oe.model, sig.u, sig.dt, oe.x0, sd)
+    np.testing.assert_allclose(oe.std_errors, crb * np.sqrt(oe.sigma2) / sd, rtol=1e-6)
+
+
+def test_output_error_noise_free_keeps_the_truth():
+    true = paper_table3_model1()
+    sig = simulated_experiment(true, dt=2.5, n_samples=1600, x0=[0.0, 0.0], seed=0)
+    start = mfmjax.identify(sig, ST, ModulatingFunction(3, 4, 200.0))
+    oe = mfmjax.output_error(sig, start)
+    truth = np.array([true.a[0], true.a[1], true.b[0][0], true.b[1][0]])
+    np.testing.assert_allclose(oe.theta, truth, rtol=1e-6)
+
+
+def test_cramer_rao_against_numpy_finite_differences():
+    a, b = [0.5, 1.5, 1.0], [[0.5], [0.3]]
+    model = mfmjax.Model.from_coefficients(a, b, intersample=("foh", "zoh"))
+    dt, T = 0.1, 400
+    t = np.arange(T) * dt
+    u = np.stack([np.sin(0.7 * t), np.repeat(np.random.default_rng(0).normal(size=T // 20), 20)],
+                 1)
+    x0 = np.array([0.2, -0.1])
+    names, crb = mfmjax.cramer_rao(model, u, dt, x0, 0.05)
+    # reference: scipy lsim, central differences over (a_0, a_1, b_10, b_20, x0)
+    base = np.array([0.5, 1.5, 0.5, 0.3, *x0])
+
+    def sim(v):
+        return R.lsim([v[0], v[1], 1.0], [[v[2]], [v[3]]], u, dt, ("foh", "zoh"), v[4:])
+
+    J = np.stack([(sim(base + e) - sim(base - e)) / 2e-6 for e in np.eye(6) * 1e-6], 1)
+    ref = np.sqrt(np.diag(0.05**2 * np.linalg.inv(J.T @ J)))[:4]
+    np.testing.assert_allclose(crb, ref, rtol=1e-5)  # FD truncation ~1e-12, lsim ~1e-9
+
+
+@pytest.mark.parametrize("snr_db, tol", [(None, 0.5), (20.0, 2.0)])
+def test_delay_estimation_262_4(snr_db, tol):
+    true = mfmjax.Model.from_coefficients([0.002, 0.09, 1.0], [[0.004]], delays=[262.4],
+                                          intersample=("foh",))
+    sig = simulated_experiment(true, dt=1.0, n_samples=3000, seed=2)
+    if snr_db is not None:
+        sd = float(np.std(sig.y)) / 10 ** (snr_db / 20)
+        y = np.asarray(sig.y) + sd * np.random.default_rng(5).standard_normal(3000)
+        sig = Signals(y, sig.u, dt=1.0, intersample=("foh",), delays=sig.delays)
+    res = mfmjax.search(sig, n=2, N=3, M=4, h=80.0, m=[[0]], delays=[np.arange(0, 401, 20)])
+    coarse = res.best()
+    assert abs(float(coarse.delays[0]) - 262.4) <= 20
+    r = mfmjax.refine(sig, coarse, vary=("delays",), max_steps=30)
+    assert abs(r.settings["delays"][0] - 262.4) < tol
