@@ -256,7 +256,9 @@ def test_cli_online_table_plot_json(switching, switching_csv, tmp_path, capsys):
     img = imread(png)
     assert img.shape[:2] == (400, 1000)  # figsize (10, 4) at 100 dpi
     assert img[..., :3].std() > 0.05  # not blank
-    assert main(["online", *args]) == 0
+    head = tmp_path / "head.csv"  # the table view, on the first 20 intervals only
+    head.write_text("\n".join(switching_csv.read_text().splitlines()[: 1 + 20 * S]) + "\n")
+    assert main(["online", str(head), *args[1:]]) == 0
     text = capsys.readouterr().out
     assert "mean square prediction error" in text and "p2" in text and "E_reident" in text
 
