@@ -218,3 +218,20 @@ def test_search_cli_errors(csv_file, capsys, extra, match):
     assert main(args) == 2
     err = capsys.readouterr().err.strip()
     assert match in err and len(err.splitlines()) == 1
+
+
+def test_identify_and_search_refine(csv_file, capsys):
+    assert main(["identify", str(csv_file), *ARGS, "--refine", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    ref = out["refined"]
+    assert set(ref["settings"]) == {"h", "N", "M", "delays"}
+    assert ref["refine_result"] in ("successful", "max_steps_reached")
+    assert ref["E_output_error"] <= ref["E_mfm"] * (1 + 1e-9)
+    assert set(ref["parameters"]) == {"a_0", "a_1", "a_2", "b_10", "b_11", "b_20"}
+    for p in ref["parameters"].values():
+        assert p["std_error"] >= 0 and np.isfinite(p["value"])
+    assert main(["search", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
+                 "--intersample", "foh,zoh", "--n", "3", "--m", "1;0", "--N", "4", "--M", "5",
+                 "--h", "2.0", "--refine"]) == 0
+    text = capsys.readouterr().out
+    assert "refined settings" in text and "std. error" in text and "output error" in text
