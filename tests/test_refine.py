@@ -32,13 +32,13 @@ def noisy():
 
 
 def _packed(sig):
-    """[J_rel, E, fit] as a function of v = [h, N, M, tau_1, tau_2, eta_1..eta_5]."""
+    """[J_rel, E, fit, J] as a function of v = [h, N, M, tau_1, tau_2, eta_1..eta_5]."""
 
     def f(v):
         out = mfmjax.scores(sig, ST, h=v[0], N=v[1], M=v[2], delays=v[3:5], eta=v[5:],
                             h_max=300.0, delay_max=30.0, validate=(500.0, 3997.5),
                             observer_window=1500.0)
-        return jnp.stack([out["J_rel"], out["E"], out["fit"]])
+        return jnp.stack([out["J_rel"], out["E"], out["fit"], out["J"]])
 
     return f
 
@@ -57,7 +57,7 @@ def _central(f, v, i, rel=1e-6):
 def test_scores_jacfwd_equals_finite_differences(noisy):
     _, sig, _ = noisy
     f = jax.jit(_packed(sig))
-    J = np.asarray(jax.jacfwd(f)(jnp.asarray(V0)))  # (3 scores, 10 settings)
+    J = np.asarray(jax.jacfwd(f)(jnp.asarray(V0)))  # (4 scores, 10 settings)
     for i in range(V0.size):
         fd = _central(f, V0, i)
         scale = np.abs(J).max(axis=1) + 1e-300  # each score's largest derivative
