@@ -35,6 +35,7 @@ from ._structure import Structure
 
 SETTINGS = ("h", "N", "M", "delays")
 MAX_EXPONENT = 12.0  # default upper bound of N and M in refine
+USABLE = ("successful", "max_steps_reached", "nonlinear_max_steps_reached")  # solver codes
 
 
 def _window(signals: Signals, validate, observer_window, fn: str):
@@ -242,7 +243,7 @@ def refine(
     code = _result_name(result)
     s_start = {k: _plain(v) for k, v in x0.items()}
     if not math.isfinite(path[0]) or best_f >= path[0] or code not in (
-            "successful", "max_steps_reached"):
+            *USABLE,):
         return Refinement(start, start, s_start, s_start, np.exp(np.asarray(path)), code, steps,
                           score)
     s = {k: _plain(v) for k, v in objective.settings(best_z).items()}
@@ -406,7 +407,8 @@ def output_error(
     r0, r = residual(z0, None), residual(z, None)
     E0 = float(jnp.sum(r0**2)) * signals.dt
     E1 = float(jnp.sum(r**2)) * signals.dt
-    ok = code in ("successful", "max_steps_reached") and math.isfinite(E1) and E1 <= E0
+    # out of steps but better than the start: kept (the code says so); otherwise the start
+    ok = code in USABLE and math.isfinite(E1) and E1 <= E0
     if not ok:
         z, E1 = z0, E0
     theta = np.asarray(theta0 + scale * np.asarray(z[:p_theta]))
