@@ -242,8 +242,7 @@ def refine(
         result = optx.RESULTS.max_steps_reached
     code = _result_name(result)
     s_start = {k: _plain(v) for k, v in x0.items()}
-    if not math.isfinite(path[0]) or best_f >= path[0] or code not in (
-            *USABLE,):
+    if not math.isfinite(path[0]) or best_f >= path[0] or code not in USABLE:
         return Refinement(start, start, s_start, s_start, np.exp(np.asarray(path)), code, steps,
                           score)
     s = {k: _plain(v) for k, v in objective.settings(best_z).items()}
