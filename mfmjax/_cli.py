@@ -142,7 +142,10 @@ def _online_config(args, K: int, dt: float, names):
 
     kwargs = {}
     if args.config:
-        import tomllib
+        try:
+            import tomllib
+        except ImportError:  # Python 3.10
+            import tomli as tomllib
 
         try:
             with open(args.config, "rb") as fh:
