@@ -12,7 +12,7 @@ import mfmjax
 from mfmjax import ModulatingFunction, Signals, Structure
 
 T, DT, H_MAX = 200, 0.1, 5.0
-SETTINGS = settings(max_examples=30, deadline=None,
+SETTINGS = settings(max_examples=20, deadline=None,
                     suppress_health_check=[HealthCheck.too_slow])
 
 
