@@ -44,7 +44,7 @@ import numpy as np
 
 from ._model import Model
 from ._observers import _observe_forced
-from ._search import _plan, _run, _validate, padded_forced
+from ._search import _num, _plan, _run, _validate, padded_forced
 from ._signals import INTERSAMPLE, Signals
 from ._status import Status
 
@@ -355,11 +355,6 @@ def _model_record(config, model: dict, window, E_current, E_reident, reason, j, 
         "delays": list(config.delays), "E_current": E_current, "E_reident": E_reident,
         "reason": reason,
     }
-
-
-def _num(x):
-    v = float(x)
-    return int(v) if v == int(v) else v
 
 
 def _identify_window(state: OnlineState, j: int, w: int):
