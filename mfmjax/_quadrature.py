@@ -71,13 +71,18 @@ def shifted_legendre(r, degree: int):
     return jnp.stack(out[: degree + 1])
 
 
-def legendre_coefficients(N: int, M: int, i: int, degree: int) -> np.ndarray:
-    r"""$c_q$ with $p_i(r) = \sum_q c_q P_q(2r-1)$ (exact projection by Gauss-Legendre)."""
+def legendre_coefficients(N, M, i: int, degree: int) -> np.ndarray:
+    r"""$c_q$ with $p_i(r) = \sum_q c_q P_q(2r-1)$ (exact projection by Gauss-Legendre).
+
+    `N`, `M` may be equal-length sequences: the result is then (len, degree + 1), one row per
+    (N, M), from one evaluation (a search's plan needs hundreds of them)."""
     x, w = np.polynomial.legendre.leggauss(degree + 2)
-    r = (x + 1) / 2
-    vals = np.asarray(phi_scaled(jnp.asarray(r), N, M, i))
-    basis = np.asarray(shifted_legendre(jnp.asarray(r), degree))
-    return (2 * np.arange(degree + 1) + 1) * (basis @ (w * vals)) / 2
+    r = jnp.asarray((x + 1) / 2)
+    Nv = jnp.asarray(N, dtype=jnp.float64)[..., None]
+    Mv = jnp.asarray(M, dtype=jnp.float64)[..., None]
+    vals = np.asarray(phi_scaled(r, Nv, Mv, i))  # (..., nodes)
+    basis = np.asarray(shifted_legendre(r, degree))  # (degree + 1, nodes)
+    return (2 * np.arange(degree + 1) + 1) * ((w * vals) @ basis.T) / 2
 
 
 def profile_weights(profile, h, dt: float, rule: str, delay, length: int):

@@ -226,6 +226,7 @@ class _Static(eqx.Module):
     sources: tuple = eqx.field(static=True)  # (kind, k, rule) of every moment source
     col_deriv: tuple[int, ...] = eqx.field(static=True)  # derivative order of every column
     col_source: tuple[int, ...] = eqx.field(static=True)  # source of each of the first p columns
+    classes: tuple = eqx.field(static=True)  # `_Class` of every model order
     v_start: int = eqx.field(static=True)
     v_length: int = eqx.field(static=True)
     ob_length: int = eqx.field(static=True)
@@ -233,12 +234,32 @@ class _Static(eqx.Module):
     batch: int = eqx.field(static=True)  # candidates per vmapped validation batch
 
 
+def _fft_size(n: int) -> int:
+    """Smallest 2^a 3^b 5^c >= n (sizes the FFT library handles fastest)."""
+    best = 1 << (n - 1).bit_length()
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            p235 = p35 * (1 << max(0, (-(-n // p35) - 1).bit_length()))
+            best = min(best, p235)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
 def _fft_modulate(x, W):
-    """Sliding convolutions of x (T,) with every row of W (Q, L): (T, Q), by real FFT."""
-    T, L = x.shape[0], W.shape[1]
-    nfft = 1 << (T + L - 1).bit_length()
-    X = jnp.fft.rfft(x, nfft)
-    return jnp.fft.irfft(X[None, :] * jnp.fft.rfft(W, nfft, axis=1), nfft, axis=1)[:, :T].T
+    """Sliding convolutions of every x[s] (S, T) with every row of W[s] (S, Q, L), by real FFT:
+    (T, S * Q).
+
+    The FFT is circular of size >= max(T, L): row t is exact wherever the kernel's support
+    reaches no further back than sample 0, which holds for every sample the Gram weighs
+    (`gregory_weights` is 0 before the support)."""
+    T, L = x.shape[1], W.shape[2]
+    nfft = _fft_size(max(T, L))
+    X = jnp.fft.rfft(x, nfft, axis=1)
+    conv = jnp.fft.irfft(X[:, None, :] * jnp.fft.rfft(W, nfft, axis=2), nfft, axis=2)[:, :, :T]
+    return conv.reshape(-1, T).T
 
 
 def _moment_gram(sig: Signals, static: _Static, h, delays):
@@ -247,7 +268,7 @@ def _moment_gram(sig: Signals, static: _Static, h, delays):
     Every column of $c(t)$ for every (N, M) is $\sum_q c_q\,\text{moment}_q$ of one source,
     so $G_{N,M} = C_{N,M} H C_{N,M}^T$ (module docstring)."""
     dt, T = sig.dt, sig.n_samples
-    moments, weights, scales = [], [], []
+    signals, weights = [], []
     for kind, k, rule in static.sources:
         if kind == "y":
             x, tau = sig.y, jnp.asarray(0.0)
@@ -257,23 +278,36 @@ def _moment_gram(sig: Signals, static: _Static, h, delays):
             x, tau = delayed_samples(sig.u[:, k], delays[k], dt, sig.intersample[k]), 0.0
         else:
             x, tau = jnp.ones(T), jnp.asarray(0.0)
-        W = legendre_weights(static.degree, h, dt, rule, tau, static.length)
-        moments.append(_fft_modulate(x, W))
-        weights.append(W)
-        scales.append(jnp.max(jnp.abs(x)))
+        weights.append(legendre_weights(static.degree, h, dt, rule, tau, static.length))
+        signals.append(x)
+    x, W = jnp.stack(signals), jnp.stack(weights)
+    Mom = _fft_modulate(x, W)  # (T, sources * Q)
     span = h + (jnp.max(delays) if delays.shape[0] else 0.0)
     q = gregory_weights(T, support_samples(span, dt), dt)
-    Mom = jnp.concatenate(moments, axis=1)
     H = Mom.T @ (q[:, None] * Mom)
-    return H, jnp.stack(weights), jnp.stack(scales) * jnp.sqrt(jnp.sum(q))
+    scales = jnp.max(jnp.abs(x), axis=1)
+    return H, W, scales * jnp.sqrt(jnp.sum(q))
+
+
+class _Class(NamedTuple):
+    """The candidates of one model order n: every (N, M) with N, M >= n x every structure of
+    order n, solved in a compact layout (only the columns order n can use: a_0..a_n, b_k up to
+    the class's largest m_k, offset) that `sel` picks from the padded one."""
+
+    n: int
+    sel: tuple[int, ...]  # compact column -> padded column
+    sel_ext: tuple[int, ...]  # the same for the extended Gram (feed-through columns appended)
+    m: tuple[int, ...]  # largest m_k of the class
+    nm: tuple[int, ...]  # its (N, M) pairs (indices)
+    structs: tuple[int, ...]  # its structures (indices)
 
 
 def _chunk(sig: Signals, static: _Static, eta_full, groups, structs, nm):
-    """All candidates of a chunk of (h, delays) groups x every (N, M) x every structure."""
+    """All candidates of a chunk of (h, delays) groups: for every group, the classes' (N, M)
+    x structure products, flattened in class order: outputs (G, C_group, ...)."""
     K = sig.n_inputs
     n_max, m_max = static.n_max, static.m_max
     p = n_max + 1 + sum(mk + 1 for mk in m_max) + int(sig.offset)
-    off = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])  # start of each b block
     n_src, Q = len(static.sources), static.degree + 1
     finite = jnp.isfinite(sig.y).all() & jnp.isfinite(sig.u).all()
     spread = jnp.max(sig.u, axis=0, initial=-jnp.inf) - jnp.min(sig.u, axis=0, initial=jnp.inf)
@@ -282,30 +316,34 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs, nm):
     hpow_i = jnp.asarray(static.col_deriv, dtype=jnp.float64)
     src_of = np.asarray(static.col_source)
 
-    def one_nm(H, W, scale, h, N, M, coef):
+    def one_nm(H, W, scale, h, coef):
         Cf = coef * (h ** (-hpow_i))[:, None, None]  # (p_ext, sources, Q)
         Cflat = Cf.reshape(Cf.shape[0], n_src * Q)
         Gx = Cflat @ H @ Cflat.T
-        G0 = Gx[:p, :p]
-        w = jnp.einsum("jq,jql->jl", Cf[np.arange(p), src_of], W[src_of])  # column kernels
+        w = Cflat[:p] @ W.reshape(n_src * Q, -1)  # column kernels
         bounds = jnp.sum(jnp.abs(w), axis=1) * scale[src_of]
-        alive = jnp.sqrt(jnp.maximum(jnp.diagonal(G0), 0.0)) > DEAD_COLUMN_RTOL * bounds
-        return jax.vmap(lambda st: _solve_candidate(G0, Gx, alive, h, N, M, st))(structs)
+        alive = jnp.sqrt(jnp.maximum(jnp.diagonal(Gx)[:p], 0.0)) > DEAD_COLUMN_RTOL * bounds
+        return Gx, alive
 
-    def _solve_candidate(G0, Gx, alive, h, N, M, st):
-        n, mask, ft = st["n"], st["mask"], st["ft"]
+    def solve(Gx, alive, h, N, M, st, cls: _Class):
+        """One candidate of class `cls` in its compact layout; results in the padded one."""
+        n, sel = cls.n, np.asarray(cls.sel)
+        pc = len(sel)
+        off = np.cumsum([n + 1] + [mk + 1 for mk in cls.m])  # start of each b block
+        mask, ft = st["mask"], st["ft"]
         active = mask & alive
-        eta = jnp.where(mask, eta_full, 0.0)
+        eta = jnp.where(mask, eta_full[sel], 0.0)
+        G0 = Gx[:pc, :pc]
         G = G0
         if static.ft_inputs:
             theta, _, _ = constrained_solve(G0, eta, active, conditioning=False)
             for _ in range(FEEDTHROUGH_STEPS):
                 an = jnp.where(theta[n] != 0, theta[n], 1.0)
-                P = jnp.eye(Gx.shape[0], p)
+                P = jnp.eye(Gx.shape[0], pc)
                 for qi, k in enumerate(static.ft_inputs):
                     Dk = jnp.where(ft[k], theta[off[k] + n] / an, 0.0)
-                    rows = p + qi * (n_max + 1) + jnp.arange(n_max + 1)
-                    P = P.at[rows, jnp.arange(n_max + 1)].set(-Dk)
+                    rows = pc + qi * (n + 1) + np.arange(n + 1)
+                    P = P.at[rows, np.arange(n + 1)].set(-Dk)
                 G = P.T @ Gx @ P
                 theta, _, _ = constrained_solve(G, eta, active, conditioning=False)
         theta, cond, reduced = constrained_solve(G, eta, active)
@@ -313,17 +351,17 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs, nm):
         dead = jnp.any(mask & ~alive)
         status = status | jnp.where(excited & ~dead, 0, Status.NO_EXCITATION)
         an = theta[n]
-        scale_a = jnp.max(jnp.where(jnp.arange(p) <= n, jnp.abs(theta), 0.0))
-        an_ok = jnp.abs(an) > 1e-12 * scale_a
+        an_ok = jnp.abs(an) > 1e-12 * jnp.max(jnp.abs(theta[: n + 1]))
         status = status | jnp.where(an_ok, 0, Status.A_N_ZERO)
-        norm = theta / jnp.where(an_ok, an, 1.0)
         quad = jnp.maximum(theta @ G @ theta, 0.0)
         terms = jnp.sum(theta**2 * jnp.diagonal(G))
-        a = jnp.where(jnp.arange(n_max + 1) <= n, norm[: n_max + 1], 0.0)
-        b = [jnp.zeros(n_max + 1).at[: m_max[k] + 1].set(norm[off[k] : off[k] + m_max[k] + 1])
+        theta = jnp.zeros(p).at[sel].set(theta)  # padded layout from here on
+        norm = theta / jnp.where(an_ok, an, 1.0)
+        pad = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])
+        b = [jnp.zeros(n_max + 1).at[: m_max[k] + 1].set(norm[pad[k] : pad[k] + m_max[k] + 1])
              for k in range(K)]
         return dict(
-            theta=theta, a=a, b=jnp.stack(b, 0) if K else jnp.zeros((0, n_max + 1)),
+            theta=theta, a=norm[: n_max + 1], b=jnp.stack(b, 0) if K else jnp.zeros((0, n_max + 1)),
             offset=norm[p - 1] if sig.offset else jnp.asarray(0.0),
             J=jnp.sqrt(quad / jnp.where(terms > 0, terms, 1.0)),
             J_raw=h ** (N + M + 1) * jnp.sqrt(quad), cond=cond, status=status,
@@ -331,21 +369,34 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs, nm):
 
     def one_group(h, delays):
         H, W, scale = _moment_gram(sig, static, h, delays)
-        return jax.vmap(lambda N, M, coef: one_nm(H, W, scale, h, N, M, coef))(
-            nm["N"], nm["M"], nm["coef"])
+        Gx, alive = jax.vmap(lambda coef: one_nm(H, W, scale, h, coef))(nm["coef"])
+        outs = []
+        for cls, st in zip(static.classes, structs):
+            r, ext = np.asarray(cls.nm), np.asarray(cls.sel_ext)
+            Gc, ac = Gx[r][:, ext[:, None], ext[None, :]], alive[r][:, np.asarray(cls.sel)]
 
-    out = jax.vmap(one_group)(groups["h"], groups["delays"])  # (G, NM, S, ...)
+            def per_nm(G, a, N, M, cls=cls, st=st):
+                return jax.vmap(lambda s: solve(G, a, h, N, M, s, cls))(st)
+
+            o = jax.vmap(per_nm)(Gc, ac, nm["N"][r], nm["M"][r])  # (NM_c, S_c, ...)
+            outs.append(jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), o))
+        return {key: jnp.concatenate([o[key] for o in outs]) for key in outs[0]}
+
+    out = jax.vmap(one_group)(groups["h"], groups["delays"])  # (G, C_group, ...)
     shape = out["status"].shape
     if not static.simulate:  # equation error only (score J)
         nan = jnp.full(shape, jnp.nan)
         return dict(out, E=nan, fit=nan, aic=nan, bic=nan, status=out["status"].astype(jnp.int32))
+    per_col = {key: jnp.concatenate([jnp.tile(st[key], len(cls.nm))
+                                     for cls, st in zip(static.classes, structs)])
+               for key in ("n", "k")}
     flat = {
         "a": out["a"].reshape(-1, n_max + 1),
         "b": out["b"].reshape(-1, K, n_max + 1),
         "offset": out["offset"].reshape(-1),
-        "n": jnp.broadcast_to(structs["n"], shape).reshape(-1),
-        "k": jnp.broadcast_to(structs["k"], shape).reshape(-1),
-        "delays": jnp.broadcast_to(groups["delays"][:, None, None, :], shape + (K,)).reshape(-1, K),
+        "n": jnp.broadcast_to(per_col["n"], shape).reshape(-1),
+        "k": jnp.broadcast_to(per_col["k"], shape).reshape(-1),
+        "delays": jnp.broadcast_to(groups["delays"][:, None, :], shape + (K,)).reshape(-1, K),
     }
     val = jax.lax.map(lambda c: _validate(sig, static, c), flat, batch_size=static.batch)
     val = {key: v.reshape(shape) for key, v in val.items()}
@@ -452,7 +503,7 @@ class _Plan(NamedTuple):
     nm: dict
     hd: list
     combos: list
-    keep_nm_s: np.ndarray
+    columns: tuple[np.ndarray, np.ndarray]  # (N, M) pair and structure of each group column
     chunk: int
     sharding: jax.sharding.NamedSharding
     score: str
@@ -558,35 +609,49 @@ def _plan(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_
              for i in range(n_max + 1)]
     degree = int(max(a + b for a, b in nm_pairs))
     coef = np.zeros((len(nm_pairs), len(cols), len(sources), degree + 1))
-    for r, (a, b) in enumerate(nm_pairs):
-        for j, (src, minus, i, sign) in enumerate(cols):
-            c = sign * legendre_coefficients(int(a), int(b), i, degree)
-            coef[r, j, src] += c
-            if minus is not None:
-                coef[r, j, minus] -= c
+    pair_N, pair_M = [a for a, _ in nm_pairs], [b for _, b in nm_pairs]
+    by_deriv = {i: legendre_coefficients(pair_N, pair_M, i, degree) for i in {c[2] for c in cols}}
+    for j, (src, minus, i, sign) in enumerate(cols):
+        coef[:, j, src] += sign * by_deriv[i]
+        if minus is not None:
+            coef[:, j, minus] -= sign * by_deriv[i]
     nm = {"N": jnp.asarray([a for a, _ in nm_pairs]), "M": jnp.asarray([b for _, b in nm_pairs]),
           "coef": jnp.asarray(coef)}
+    classes, struct_arr = [], []
+    pad_off = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])
+    for n_c in sorted({st[0] for st in structs}):
+        members = [j for j, st in enumerate(structs) if st[0] == n_c]
+        pairs = [r for r, (a, b) in enumerate(nm_pairs) if min(a, b) >= n_c]
+        if not pairs:
+            continue
+        m_c = tuple(max(structs[j][1][k] for j in members) for k in range(K))
+        sel = list(range(n_c + 1))
+        for k in range(K):
+            sel += [int(pad_off[k]) + i for i in range(m_c[k] + 1)]
+        sel += [p - 1] if signals.offset else []
+        sel_ext = sel + [p + q * (n_max + 1) + i for q in range(len(ft_inputs)) for i in range(n_c + 1)]
+        classes.append(_Class(n_c, tuple(sel), tuple(sel_ext), m_c, tuple(pairs), tuple(members)))
+        struct_arr.append({
+            "n": jnp.full(len(members), n_c, dtype=jnp.int32),
+            "mask": jnp.asarray([_mask(structs[j], n_c, m_c, signals.offset) for j in members]),
+            "ft": jnp.asarray([[structs[j][1][k] == n_c for k in range(K)]
+                               for j in members]).reshape(len(members), K),
+            "k": jnp.asarray([n_c + sum(mk + 1 for mk in structs[j][1]) + int(signals.offset)
+                              for j in members], dtype=jnp.float64),
+        })
     static = _Static(
-        n_max, m_max, ft_inputs, kernel_length(max(h_max + delay_max, span_bound), dt), degree, tuple(sources),
-        tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]), v0, v_len, ob,
-        bool(simulate), 64,
+        n_max, m_max, ft_inputs, kernel_length(max(h_max + delay_max, span_bound), dt), degree,
+        tuple(sources), tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]), tuple(classes),
+        v0, v_len, ob, bool(simulate), 64,
     )
-    S = len(structs)
-    struct_arr = {
-        "n": jnp.asarray([s[0] for s in structs], dtype=jnp.int32),
-        "mask": jnp.asarray([_mask(s, n_max, m_max, signals.offset) for s in structs]),
-        "ft": jnp.asarray([[s[1][k] == s[0] for k in range(K)] for s in structs]).reshape(S, K),
-        "k": jnp.asarray([s[0] + sum(mk + 1 for mk in s[1]) + int(signals.offset)
-                          for s in structs], dtype=jnp.float64),
-    }
-    nm_min = np.asarray([min(a, b) for a, b in nm_pairs])
-    keep_nm_s = nm_min[:, None] >= n_of[None, :]  # (NM, S): N, M >= n
     mesh = _mesh()
     n_dev = mesh.devices.size
     chunk = max(n_dev, int(math.ceil(chunk_size / n_dev)) * n_dev)
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("c"))
-    return _Plan(static, eta, structs, struct_arr, nm, hd, combos, keep_nm_s, chunk, sharding,
-                 score, signals.n_samples, K)
+    col_nm = np.concatenate([np.repeat(c.nm, len(c.structs)) for c in classes])
+    col_struct = np.concatenate([np.tile(c.structs, len(c.nm)) for c in classes])
+    return _Plan(static, eta, structs, tuple(struct_arr), nm, hd, combos, (col_nm, col_struct),
+                 chunk, sharding, score, signals.n_samples, K)
 
 
 def _run(plan: _Plan, signals: Signals, progress=None) -> SearchResult:
@@ -594,7 +659,8 @@ def _run(plan: _Plan, signals: Signals, progress=None) -> SearchResult:
     static, hd, chunk, K = plan.static, plan.hd, plan.chunk, plan.n_inputs
     if (signals.n_samples, signals.n_inputs) != (plan.n_samples, K):
         raise ValueError("search: the signals do not match the plan's record length and inputs")
-    NMc, S = plan.keep_nm_s.shape
+    NMc = len(plan.nm["N"])
+    col_nm, col_struct = plan.columns
     outs, times = [], []
     for c0 in range(0, len(hd), chunk):
         idx = list(range(c0, min(c0 + chunk, len(hd))))
@@ -613,9 +679,9 @@ def _run(plan: _Plan, signals: Signals, progress=None) -> SearchResult:
 
             res = multihost_utils.process_allgather(res, tiled=True)
         res = jax.tree_util.tree_map(np.asarray, res)
-        gi, ni, si = np.nonzero(np.broadcast_to(plan.keep_nm_s, (real, NMc, S)))
-        res = {key: val[gi, ni, si] for key, val in res.items()}
-        res["group"], res["struct"] = (np.asarray(idx)[gi] * NMc + ni), si
+        res = {key: val[:real].reshape((-1,) + val.shape[2:]) for key, val in res.items()}
+        gi = np.repeat(np.asarray(idx[:real]), len(col_nm))
+        res["group"], res["struct"] = gi * NMc + np.tile(col_nm, real), np.tile(col_struct, real)
         times.append(time.perf_counter() - t0)
         outs.append(res)
         if progress is not None:

@@ -49,3 +49,25 @@ def test_batched_and_grad():
 def test_hurwitz_matches_roots(a):
     roots = np.roots(np.trim_zeros(np.asarray(a, float)[::-1], "f"))
     assert bool(L.hurwitz(jnp.asarray(a, dtype=float))) == bool(np.all(roots.real < 0))
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 14])
+def test_conditioning_eigvals_relative_accuracy(n):
+    # PSD with eigenvalues spread over 1e-9..1 (and one exact zero): log-bisection gives every
+    # eigenvalue above the floor (Gershgorin bound * eps^2) to 1e-4 relative; the Householder
+    # step adds ~n eps ||A|| absolute, which is below 1e-4 of 1e-9 for these sizes
+    rng = np.random.default_rng(n)
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    lam = np.logspace(-9, 0, n)
+    lam[0] = 0.0 if n > 2 else lam[0]
+    S = (Q * lam) @ Q.T
+    S = (S + S.T) / 2
+    got = np.asarray(L.conditioning_eigvals(S, jnp.arange(n)))
+    ref = np.linalg.eigvalsh(S)
+    floor = np.max(np.sum(np.abs(S), axis=1)) * np.finfo(float).eps ** 2
+    live = ref > 1e3 * n * np.finfo(float).eps * ref[-1]
+    assert np.all(np.abs(got[live] - ref[live]) <= 1e-4 * ref[live])
+    assert np.all(got[~live] <= 1e3 * n * np.finfo(float).eps * ref[-1] + floor)
+    # batched, and one index
+    many = jax.vmap(lambda A: L.conditioning_eigvals(A, jnp.asarray([n - 1])))(jnp.stack([S, 2 * S]))
+    assert np.allclose(np.asarray(many)[:, 0], [ref[-1], 2 * ref[-1]], rtol=1e-4)

@@ -91,3 +91,20 @@ def test_gregory_weights():
     t = np.arange(20) * 0.5
     # exact for cubics on the valid part [2.5, 9.5]
     assert abs(q @ t**3 - (9.5**4 - 2.5**4) / 4) <= 1e-12 * 9.5**4
+
+
+def test_legendre_expansion_reproduces_phi():
+    # search's moment basis: p_i = sum_q c_q P_q(2r - 1) exactly (degree N + M - i <= degree);
+    # the projection is a Gauss rule, exact, so only float64 rounding of ~20 terms: 1e-11
+    from numpy.polynomial import legendre as npleg
+
+    from mfmjax._quadrature import legendre_coefficients
+
+    pairs = [(3, 3), (4, 7), (8, 8), (5, 2)]
+    r = np.linspace(0.0, 1.0, 41)
+    for i in range(4):
+        coef = legendre_coefficients([a for a, _ in pairs], [b for _, b in pairs], i, 16)
+        for (N, M), c in zip(pairs, coef):
+            ref = R.phi_poly(N, M, i)(r)
+            got = npleg.legval(2 * r - 1, c)
+            assert np.max(np.abs(got - ref)) <= 1e-11 * max(1.0, np.max(np.abs(ref)))
