@@ -23,6 +23,7 @@ in the candidate count) and each chunk's group axis is sharded over all `jax.dev
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import math
@@ -284,7 +285,8 @@ def _moment_gram(sig: Signals, static: _Static, h, delays):
     Mom = _fft_modulate(x, W)  # (T, sources * Q)
     span = h + (jnp.max(delays) if delays.shape[0] else 0.0)
     q = gregory_weights(T, support_samples(span, dt), dt)
-    H = Mom.T @ (q[:, None] * Mom)
+    Mq = jnp.sqrt(q)[:, None] * Mom  # q >= 0 (Gregory weights)
+    H = Mq.T @ Mq
     scales = jnp.max(jnp.abs(x), axis=1)
     return H, W, scales * jnp.sqrt(jnp.sum(q))
 
@@ -610,7 +612,7 @@ def _plan(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_
     degree = int(max(a + b for a, b in nm_pairs))
     coef = np.zeros((len(nm_pairs), len(cols), len(sources), degree + 1))
     pair_N, pair_M = [a for a, _ in nm_pairs], [b for _, b in nm_pairs]
-    by_deriv = {i: legendre_coefficients(pair_N, pair_M, i, degree) for i in {c[2] for c in cols}}
+    by_deriv = {i: _coefficients(tuple(pair_N), tuple(pair_M), i, degree) for i in {c[2] for c in cols}}
     for j, (src, minus, i, sign) in enumerate(cols):
         coef[:, j, src] += sign * by_deriv[i]
         if minus is not None:
@@ -659,9 +661,9 @@ def _run(plan: _Plan, signals: Signals, progress=None) -> SearchResult:
     static, hd, chunk, K = plan.static, plan.hd, plan.chunk, plan.n_inputs
     if (signals.n_samples, signals.n_inputs) != (plan.n_samples, K):
         raise ValueError("search: the signals do not match the plan's record length and inputs")
-    NMc = len(plan.nm["N"])
     col_nm, col_struct = plan.columns
-    outs, times = [], []
+    Cg = len(col_nm)  # candidates per (h, delays) setting
+    cols, times = {}, []
     for c0 in range(0, len(hd), chunk):
         idx = list(range(c0, min(c0 + chunk, len(hd))))
         real = len(idx)
@@ -678,18 +680,30 @@ def _run(plan: _Plan, signals: Signals, progress=None) -> SearchResult:
             from jax.experimental import multihost_utils
 
             res = multihost_utils.process_allgather(res, tiled=True)
-        res = jax.tree_util.tree_map(np.asarray, res)
-        res = {key: val[:real].reshape((-1,) + val.shape[2:]) for key, val in res.items()}
-        gi = np.repeat(np.asarray(idx[:real]), len(col_nm))
-        res["group"], res["struct"] = gi * NMc + np.tile(col_nm, real), np.tile(col_struct, real)
+        for key, val in res.items():  # straight into the preallocated columns: memory flat
+            val = np.asarray(val)[:real]
+            if key not in cols:
+                cols[key] = np.empty((len(hd) * Cg,) + val.shape[2:], val.dtype)
+            cols[key][c0 * Cg : (c0 + real) * Cg] = val.reshape((-1,) + val.shape[2:])
+        del res
         times.append(time.perf_counter() - t0)
-        outs.append(res)
         if progress is not None:
             progress(min(c0 + chunk, len(hd)), len(hd))
     # the first chunk compiles: its excess over a typical chunk is the compile time
     typical = float(np.median(times[1:])) if len(times) > 1 else 0.0
     t_compile, t_run = max(times[0] - typical, 0.0), sum(times) - max(times[0] - typical, 0.0)
-    return _collect(outs, plan.combos, plan.structs, signals, static, plan.score, t_compile, t_run)
+    n_set = len(hd)
+    cols["group"] = np.repeat(np.arange(n_set), Cg) * len(plan.nm["N"]) + np.tile(col_nm, n_set)
+    cols["struct"] = np.tile(col_struct, n_set)
+    return _collect(cols, plan.combos, plan.structs, signals, static, plan.score, t_compile, t_run)
+
+
+@functools.lru_cache(maxsize=128)
+def _coefficients(pair_N: tuple, pair_M: tuple, i: int, degree: int) -> np.ndarray:
+    """`legendre_coefficients` of every (N, M) pair, memoised: constants of a grid."""
+    out = legendre_coefficients(pair_N, pair_M, i, degree)
+    out.setflags(write=False)
+    return out
 
 
 def _mask(s, n_max, m_max, offset):
@@ -700,8 +714,7 @@ def _mask(s, n_max, m_max, offset):
     return mask + ([True] if offset else [])
 
 
-def _collect(outs, combos, structs, signals, static, score, t_compile, t_run):
-    cols = {key: np.concatenate([o[key] for o in outs]) for key in outs[0]}
+def _collect(cols, combos, structs, signals, static, score, t_compile, t_run):
     g, st = cols.pop("group"), cols.pop("struct")
     grid = np.asarray([(c[0], c[1], c[2]) for c in combos])
     cols["n"] = np.asarray([s[0] for s in structs])[st]
