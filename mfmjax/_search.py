@@ -228,6 +228,7 @@ class _Static(eqx.Module):
     col_deriv: tuple[int, ...] = eqx.field(static=True)  # derivative order of every column
     col_source: tuple[int, ...] = eqx.field(static=True)  # source of each of the first p columns
     classes: tuple = eqx.field(static=True)  # `_Class` of every model order
+    devices: int = eqx.field(static=True)  # devices the (h, delays) axis is sharded over
     v_start: int = eqx.field(static=True)
     v_length: int = eqx.field(static=True)
     ob_length: int = eqx.field(static=True)
@@ -369,9 +370,12 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs, nm):
             J_raw=h ** (N + M + 1) * jnp.sqrt(quad), cond=cond, status=status,
         )
 
-    def one_group(h, delays):
+    def grams(hd):  # one (h, delays) setting: the Gram of every (N, M)
+        h, delays = hd
         H, W, scale = _moment_gram(sig, static, h, delays)
-        Gx, alive = jax.vmap(lambda coef: one_nm(H, W, scale, h, coef))(nm["coef"])
+        return jax.vmap(lambda coef: one_nm(H, W, scale, h, coef))(nm["coef"])
+
+    def solve_group(h, Gx, alive):
         outs = []
         for cls, st in zip(static.classes, structs):
             r, ext = np.asarray(cls.nm), np.asarray(cls.sel_ext)
@@ -384,7 +388,13 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs, nm):
             outs.append(jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), o))
         return {key: jnp.concatenate([o[key] for o in outs]) for key in outs[0]}
 
-    out = jax.vmap(one_group)(groups["h"], groups["delays"])  # (G, C_group, ...)
+    # the signal-sized work one setting at a time (cache-sized; vmapped over the devices'
+    # blocks of the sharded axis), the small solves batched over all of them
+    per_dev = (static.devices, -1)
+    Gx, alive = jax.vmap(lambda hd: jax.lax.map(grams, hd))(
+        (groups["h"].reshape(per_dev), groups["delays"].reshape(per_dev + (K,))))
+    Gx, alive = Gx.reshape((-1,) + Gx.shape[2:]), alive.reshape((-1,) + alive.shape[2:])
+    out = jax.vmap(solve_group)(groups["h"], Gx, alive)  # (G, C_group, ...)
     shape = out["status"].shape
     if not static.simulate:  # equation error only (score J)
         nan = jnp.full(shape, jnp.nan)
@@ -462,7 +472,7 @@ def search(
     validate: tuple[float, float] | None = None,
     observer_window: float | None = None,
     eta=None,
-    chunk_size: int = 2,
+    chunk_size: int = 8,
     simulate: bool = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> SearchResult:
@@ -644,7 +654,7 @@ def _plan(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_
     static = _Static(
         n_max, m_max, ft_inputs, kernel_length(max(h_max + delay_max, span_bound), dt), degree,
         tuple(sources), tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]), tuple(classes),
-        v0, v_len, ob, bool(simulate), 64,
+        len(jax.devices()), v0, v_len, ob, bool(simulate), 64,
     )
     mesh = _mesh()
     n_dev = mesh.devices.size
