@@ -493,8 +493,9 @@ def search(
       start comes from the initial-state observer over `observer_window` (default: the window).
     - `simulate`: False skips the observer + simulation (E, fit, AIC, BIC are NaN; only the
       `"J"` score is available): the pure equation-error search.
-    - `chunk_size`: (h, delays) settings per compiled chunk, each with every (N, M) and
-      structure (rounded up to a multiple of the device count); `progress(done, total)` is
+    - `chunk_size`: (h, delays) settings per compiled chunk (at most the grid's; rounded up to
+      a multiple of the device count), each with every (N, M) and structure: memory grows with
+      it, not with the grid; `progress(done, total)` is
       called after each chunk with counts of (h, delays) settings.
 
     **Returns:** a `SearchResult`.
@@ -533,6 +534,8 @@ def _plan(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_
         raise TypeError("search(): signals must be a Signals")
     if score not in SCORES:
         raise ValueError(f"search(): unknown score {score!r}; use one of {SCORES}")
+    if not (isinstance(chunk_size, (int, np.integer)) and chunk_size >= 1):
+        raise ValueError(f"search(): chunk_size must be an integer >= 1 (got {chunk_size!r})")
     if not simulate and score != "J":
         raise ValueError(f"search(): score {score!r} needs simulate=True (or use score='J')")
     K = signals.n_inputs
@@ -658,7 +661,7 @@ def _plan(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_
     )
     mesh = _mesh()
     n_dev = mesh.devices.size
-    chunk = max(n_dev, int(math.ceil(chunk_size / n_dev)) * n_dev)
+    chunk = n_dev * math.ceil(min(chunk_size, len(hd)) / n_dev)  # no padding beyond the grid
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("c"))
     col_nm = np.concatenate([np.repeat(c.nm, len(c.structs)) for c in classes])
     col_struct = np.concatenate([np.tile(c.structs, len(c.nm)) for c in classes])

@@ -10,6 +10,7 @@ import pytest
 import mfmjax
 from mfmjax import ModulatingFunction, Signals, Structure
 from mfmjax._search import _chunk_jit
+from mfmjax._status import describe
 from mfmjax.datasets import simulated_experiment, third_order_two_input
 
 HERE = os.path.dirname(__file__)
@@ -38,6 +39,7 @@ def test_every_candidate_equals_identify(noisy):
                         delays=[(0.0,), (0.0, 0.05)])
     assert len(res) == 4 * (2 + 3)  # 4 groups (M x delays); n=1: m1 in {0,1}; n=3: {0,1,3}
     rows = [res.row(i) for i in range(len(res))]
+    res_rank = {id(r): i for i, r in enumerate(rows)}
     # every structure at one (M, delays) group, and every group for the m_k = n structure
     # (each identify call compiles: the full cross product adds nothing but time)
     rows = [r for r in rows if (r["M"] == 4 and r["delays"] == [0.0, 0.0])
@@ -49,10 +51,16 @@ def test_every_candidate_equals_identify(noisy):
             warnings.simplefilter("ignore")
             mod = mfmjax.identify(sig, Structure(r["n"], r["m"]),
                                   ModulatingFunction(r["N"], r["M"], r["h"]))
+        assert r["status"] == describe(int(mod.status)), r
         if float(mod.cond) < 1e12:
             ref = _params(mod.a, mod.b)
             got = _params(r["a"], r["b"])
             assert np.max(np.abs(got - ref)) <= 1e-8 * np.max(np.abs(ref)), r
+        if float(mod.cond) < 1e8:
+            # both from conditioning_eigvals (1e-4 relative) on Grams equal to rounding
+            # amplified by cond (< 1e-8): 1e-3
+            best = res.best(res_rank[id(r)])
+            assert abs(float(best.cond) - float(mod.cond)) <= 1e-3 * float(mod.cond)
         assert abs(r["J"] - float(mod.J_rel)) <= 1e-6 * float(mod.J_rel) + 1e-14
         # E of the search equals the observer + simulation of the identified model
         if r["status"] == "ok":
@@ -119,6 +127,7 @@ def test_exports(noisy, tmp_path):
         (dict(h=(1.0,), m=[(0,)]), "m needs one list"),
         (dict(h=(1.0,), delays=[(0.0,), (-1.0,)]), "delays must be >= 0"),
         (dict(h=(1.0,), validate=(0.0, 100.0)), "validate window"),
+        (dict(h=(1.0,), chunk_size=0), "chunk_size must be an integer >= 1"),
     ],
 )
 def test_bad_grids(noisy, kw, match):
