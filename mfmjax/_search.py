@@ -492,8 +492,9 @@ def search(
     - `score`: ranking key, one of `"E"` (eq. 17 on the validation window), `"J"` (scale-free
       equation error J_rel), `"fit"` (NRMSE %), `"aic"`, `"bic"` ($N_v \ln(E/T_v) + 2k$ and
       $+ k \ln N_v$, k = number of free parameters). Flagged candidates rank after the others;
-      ties (for E: differences below 1e-12 of $\int y^2$, i.e. rounding noise on noise-free
-      data) go to the candidate with fewer parameters.
+      ties (for E: differences below 1e-12 of $\int y^2$; for J: below $\sqrt{p\,\epsilon}$,
+      the rounding noise of $\theta^T G \theta$; both matter on noise-free data) go to the
+      candidate with fewer parameters.
     - `validate`: (t0, t1) window for E and fit (default: the whole record); the state at its
       start comes from the initial-state observer over `observer_window` (default: the window).
     - `simulate`: False skips the observer + simulation (E, fit, AIC, BIC are NaN; only the
@@ -745,6 +746,9 @@ def _collect(cols, combos, structs, signals, static, score, t_compile, t_run):
     if score == "E":  # E below rounding noise (1e-12 of the output energy) is a tie: fewer
         yv = np.asarray(signals.y)[static.v_start : static.v_start + static.v_length]
         q = E_TIE_RTOL * float(np.sum(yv**2)) * signals.dt + 1e-300
+        key = np.where(np.isfinite(key), np.floor(key / q), np.inf)
+    if score == "J":  # J^2 below p eps is the float64 noise of theta' G theta: a tie
+        q = math.sqrt(cols["theta"].shape[1] * np.finfo(np.float64).eps)
         key = np.where(np.isfinite(key), np.floor(key / q), np.inf)
     n_par = np.asarray([s[0] + sum(mk + 1 for mk in s[1]) for s in structs])[st]
     bad = cols["status"] != 0

@@ -215,3 +215,14 @@ print("RESULT" + json.dumps({"devices": len(jax.devices()), "ranked": res.to_dic
     assert len(ref) == len(docs[0]["ranked"])
     for a in docs[0]["ranked"]:
         assert np.allclose(a["a"], ref[key(a)]["a"], rtol=1e-10, atol=0)
+
+
+def test_best_by_J_on_noise_free_data_has_true_orders(clean):
+    # over-parameterised structures fit noise-free data to rounding too: J below
+    # sqrt(p eps) (the float64 noise of the quadratic form, scale-free) is a tie that goes to
+    # fewer parameters, so rounding noise cannot pick a larger order
+    res = mfmjax.search(clean, n=(2, 3, 4, 5), N=(5, 6), M=(5, 6), h=(1.5, 2.0),
+                        m=[(0, 1), (0,)], score="J", simulate=False)
+    c = res.columns
+    assert np.min(c["J"][c["n"] > 3]) < np.min(c["J"][c["n"] == 3])  # the trap is real
+    assert (res.row(0)["n"], res.row(0)["m"]) == (3, [1, 0])
