@@ -132,6 +132,31 @@ def _window(model: Model, signals: Signals, window, fn: str):
     return k0, k1 - k0 + 1
 
 
+def validation_window(signals: Signals, validate, observer_window, n: int, fn: str):
+    """(start, length, observer length) in samples of a validation window (t0, t1) (default:
+    the record) and of its initial-state observer window (default: the whole window), checked
+    at the public boundary for an order-`n` observer."""
+    T, dt, t0 = signals.n_samples, signals.dt, signals.t0
+    if validate is None:
+        v0, v1 = 0, T - 1
+    else:
+        v0, v1 = (round((float(v) - t0) / dt) for v in validate)
+    need = max(MIN_WINDOW, 2 * n)
+    if v0 < 0 or v1 > T - 1 or v1 - v0 + 1 < need:
+        raise ValueError(
+            f"{fn}(): validate window {tuple(validate)} must lie inside the record "
+            f"[{t0:g}, {t0 + (T - 1) * dt:g}] and hold at least {need} samples"
+        )
+    length = v1 - v0 + 1
+    ob = length if observer_window is None else round(float(observer_window) / dt) + 1
+    if not MIN_WINDOW <= ob <= length:
+        raise ValueError(
+            f"{fn}(): observer_window must fit inside the validation window and hold at least "
+            f"{MIN_WINDOW} samples"
+        )
+    return v0, length, ob
+
+
 def _checked(obs: Observation, fn: str) -> Observation:
     if not isinstance(obs.status, jax.core.Tracer):
         st = int(obs.status)

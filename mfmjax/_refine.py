@@ -28,7 +28,7 @@ from ._identify import _identify
 from ._linalg import expm
 from ._model import Model
 from ._modulating import ModulatingFunction
-from ._observers import MIN_WINDOW, _observe_forced, fit_percent
+from ._observers import _observe_forced, fit_percent, validation_window
 from ._signals import Signals
 from ._simulate import _forced
 from ._structure import Structure
@@ -36,22 +36,6 @@ from ._structure import Structure
 SETTINGS = ("h", "N", "M", "delays")
 MAX_EXPONENT = 12.0  # default upper bound of N and M in refine
 USABLE = ("successful", "max_steps_reached", "nonlinear_max_steps_reached")  # solver codes
-
-
-def _window(signals: Signals, validate, observer_window, fn: str):
-    T, dt = signals.n_samples, signals.dt
-    if validate is None:
-        v0, v1 = 0, T - 1
-    else:
-        v0 = round((float(validate[0]) - signals.t0) / dt)
-        v1 = round((float(validate[1]) - signals.t0) / dt)
-    if v0 < 0 or v1 > T - 1 or v1 - v0 + 1 < MIN_WINDOW:
-        raise ValueError(f"{fn}(): validate window {validate} must lie inside the record")
-    length = v1 - v0 + 1
-    ob = length if observer_window is None else round(float(observer_window) / dt) + 1
-    if not MIN_WINDOW <= ob <= length:
-        raise ValueError(f"{fn}(): observer_window must fit inside the validation window")
-    return v0, length, ob
 
 
 def _scores(signals, structure, h, N, M, delays, eta, h_max, delay_max, v0, length, ob):
@@ -79,7 +63,7 @@ def scores(
     **Returns:** dict with `J`, `J_rel`, `E`, `fit`, `status`.
     """
     structure = structure.for_inputs(signals.n_inputs)
-    v0, length, ob = _window(signals, validate, observer_window, "scores")
+    v0, length, ob = validation_window(signals, validate, observer_window, structure.n, "scores")
     p = structure.n_params + int(signals.offset)
     eta = jnp.ones(p) if eta is None else jnp.asarray(eta, dtype=jnp.float64)
     if eta.shape != (p,):
@@ -213,7 +197,8 @@ def refine(
                 x0[key] > hi):
             raise ValueError(f"refine(): the start {key}={x0[key]} must lie in its bounds "
                              f"[{lo}, {hi}] with lo < hi")
-    v0, length, ob = _window(signals, validate, observer_window, "refine")
+    v0, length, ob = validation_window(signals, validate, observer_window, start.structure.n,
+                                       "refine")
     p = start.structure.n_params + int(signals.offset)
     objective = _Objective(
         signals=signals, x0={k: jnp.asarray(v, dtype=jnp.float64) for k, v in x0.items()},

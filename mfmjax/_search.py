@@ -45,7 +45,7 @@ from ._identify import FEEDTHROUGH_STEPS
 from ._linalg import hurwitz
 from ._model import Model
 from ._modulating import ModulatingFunction
-from ._observers import MIN_WINDOW, _observe_forced, fit_percent
+from ._observers import _observe_forced, fit_percent, validation_window
 from ._quadrature import (
     delayed_samples,
     gregory_weights,
@@ -596,20 +596,7 @@ def _plan(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_
             f"search(): h={h_max:g} (+ delays {delay_max:g}) leaves too few valid samples in "
             f"the record ({signals.duration:g} time units); use smaller h"
         )
-    if validate is None:
-        v0, v1 = 0, signals.n_samples - 1
-    else:
-        v0 = round((float(validate[0]) - signals.t0) / dt)
-        v1 = round((float(validate[1]) - signals.t0) / dt)
-        if v0 < 0 or v1 > signals.n_samples - 1 or v1 - v0 + 1 < max(MIN_WINDOW, 2 * n_max):
-            raise ValueError(
-                f"search(): validate window {tuple(validate)} must lie inside the record and "
-                f"hold at least {max(MIN_WINDOW, 2 * n_max)} samples"
-            )
-    v_len = v1 - v0 + 1
-    ob = v_len if observer_window is None else round(float(observer_window) / dt) + 1
-    if not MIN_WINDOW <= ob <= v_len:
-        raise ValueError("search(): observer_window must fit inside the validation window")
+    v0, v_len, ob = validation_window(signals, validate, observer_window, n_max, "search")
     p = p_needed
     eta = jnp.ones(p) if eta is None else jnp.asarray(eta, dtype=jnp.float64)
     if eta.shape != (p,):

@@ -166,3 +166,16 @@ def test_delay_estimation_262_4(snr_db, tol):
     assert abs(float(coarse.delays[0]) - 262.4) <= 20
     r = mfmjax.refine(sig, coarse, vary=("delays",), max_steps=30)
     assert abs(r.settings["delays"][0] - 262.4) < tol
+
+
+def test_bad_windows_get_the_search_errors(noisy):
+    # scores, refine and search share one window check (validation_window)
+    _, sig, _ = noisy
+    start = mfmjax.identify(sig, ST, ModulatingFunction(3, 4, 200.0))
+    for call in (lambda **kw: mfmjax.scores(sig, ST, h=200.0, N=3, M=4, **kw),
+                 lambda **kw: mfmjax.refine(sig, start, vary=("h",), **kw),
+                 lambda **kw: mfmjax.search(sig, n=(2,), N=(3,), M=(4,), h=(200.0,), **kw)):
+        with pytest.raises(ValueError, match="validate window .* must lie inside the record"):
+            call(validate=(0.0, 5000.0))
+        with pytest.raises(ValueError, match="observer_window must fit"):
+            call(validate=(500.0, 1000.0), observer_window=900.0)
