@@ -112,46 +112,35 @@ def _window(model: Model, signals: Signals, window, fn: str):
             f"{fn}(): the model has {model.n_inputs} inputs but the signals have "
             f"{signals.n_inputs}; pass the inputs the model was identified with"
         )
+    return validation_window(signals, window, None, model.n, fn, "window")[:2]
+
+
+def validation_window(signals: Signals, window, observer_window, n: int, fn: str,
+                      name: str = "validate window"):
+    """(start, length, observer length) in samples of a window (t0, t1) (default: the record)
+    and of its initial-state observer window (default: the whole window), checked at the
+    public boundary for an order-`n` observer; `name` is the argument the errors name."""
     T, dt, t0 = signals.n_samples, signals.dt, signals.t0
     if window is None:
-        k0, k1 = 0, T - 1
-    else:
-        w0, w1 = (float(v) for v in window)
-        k0, k1 = round((w0 - t0) / dt), round((w1 - t0) / dt)
-        if k0 < 0 or k1 > T - 1 or k1 <= k0:
-            raise ValueError(
-                f"{fn}(): window ({w0:g}, {w1:g}) must lie inside the record "
-                f"[{t0:g}, {t0 + (T - 1) * dt:g}] with start < end"
-            )
-    need = max(MIN_WINDOW, 2 * model.n)
-    if k1 - k0 + 1 < need:
-        raise ValueError(
-            f"{fn}(): the window holds {k1 - k0 + 1} samples, need at least {need} for an "
-            f"order-{model.n} observer; widen the window"
-        )
-    return k0, k1 - k0 + 1
-
-
-def validation_window(signals: Signals, validate, observer_window, n: int, fn: str):
-    """(start, length, observer length) in samples of a validation window (t0, t1) (default:
-    the record) and of its initial-state observer window (default: the whole window), checked
-    at the public boundary for an order-`n` observer."""
-    T, dt, t0 = signals.n_samples, signals.dt, signals.t0
-    if validate is None:
         v0, v1 = 0, T - 1
     else:
-        v0, v1 = (round((float(v) - t0) / dt) for v in validate)
-    need = max(MIN_WINDOW, 2 * n)
-    if v0 < 0 or v1 > T - 1 or v1 - v0 + 1 < need:
+        w0, w1 = (float(v) for v in window)
+        v0, v1 = round((w0 - t0) / dt), round((w1 - t0) / dt)
+        if v0 < 0 or v1 > T - 1 or v1 <= v0:
+            raise ValueError(
+                f"{fn}(): {name} ({w0:g}, {w1:g}) must lie inside the record "
+                f"[{t0:g}, {t0 + (T - 1) * dt:g}] with start < end"
+            )
+    length, need = v1 - v0 + 1, max(MIN_WINDOW, 2 * n)
+    if length < need:
         raise ValueError(
-            f"{fn}(): validate window {tuple(validate)} must lie inside the record "
-            f"[{t0:g}, {t0 + (T - 1) * dt:g}] and hold at least {need} samples"
+            f"{fn}(): the {name} holds {length} samples, need at least {need} for an "
+            f"order-{n} observer; widen it"
         )
-    length = v1 - v0 + 1
     ob = length if observer_window is None else round(float(observer_window) / dt) + 1
     if not MIN_WINDOW <= ob <= length:
         raise ValueError(
-            f"{fn}(): observer_window must fit inside the validation window and hold at least "
+            f"{fn}(): observer_window must fit inside the {name} and hold at least "
             f"{MIN_WINDOW} samples"
         )
     return v0, length, ob

@@ -323,6 +323,7 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs, nm):
         jnp.max(jnp.abs(sig.u), axis=0, initial=0.0), 1e-300))
     hpow_i = jnp.asarray(static.col_deriv, dtype=jnp.float64)
     src_of = np.asarray(static.col_source)
+    pad = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])  # b blocks in the padded layout
 
     def one_nm(H, W, scale, h, coef):
         Cf = coef * (h ** (-hpow_i))[:, None, None]  # (p_ext, sources, Q)
@@ -365,7 +366,6 @@ def _chunk(sig: Signals, static: _Static, eta_full, groups, structs, nm):
         terms = jnp.sum(theta**2 * jnp.diagonal(G))
         theta = jnp.zeros(p).at[sel].set(theta)  # padded layout from here on
         norm = theta / jnp.where(an_ok, an, 1.0)
-        pad = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])
         b = [jnp.zeros(n_max + 1).at[: m_max[k] + 1].set(norm[pad[k] : pad[k] + m_max[k] + 1])
              for k in range(K)]
         return dict(
