@@ -256,42 +256,105 @@ def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
 
     Comma-separated with a header row by default. With `names`, the file has no header and the
     columns get these names; fields may then also be separated by whitespace (DaISy .dat files).
+    An all-numeric body is parsed in C (pandas when it is already imported or the file is large,
+    else `numpy.loadtxt`); anything else (empty cells read as NaN, quoted fields, a bad row)
+    goes through a line-by-line parser that names the offending line.
     """
     try:
-        fh = open(path, newline="")
+        with open(path, "rb") as fh:
+            raw = fh.read()
     except OSError as err:
         raise ValueError(f"cannot read {path}: {err.strerror}") from None
-    with fh:
-        lines = [ln for ln in fh.read().splitlines() if ln.strip()]
-    if not lines:
+    if b"\x00" in raw[:65536]:
+        raise ValueError(f"{path}: this is a binary file (it contains NUL bytes), not a text "
+                         "table; give a comma-separated text file")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        raise ValueError(
+            f"{path}: not a UTF-8 text file (byte 0x{raw[err.start]:02x} at offset {err.start}); "
+            "give a comma-separated text file in UTF-8 (or ASCII)"
+        ) from None
+    first_line, rest = _first_line(text)
+    if first_line is None:
         raise ValueError(f"{path}: the file is empty; expected a header row")
-    comma = "," in lines[0]
+    comma = "," in first_line
+    if not comma and ";" in first_line:
+        raise ValueError(
+            f"{path}: fields are separated by ';' (line 1: {first_line[:40]!r}); mfmjax reads "
+            "comma-separated files with '.' as the decimal point: re-export the file as CSV"
+        )
 
     def split(line):
         return [c.strip() for c in (next(csv.reader([line])) if comma else line.split())]
 
     if names is None:
-        header, body, first = split(lines[0]), lines[1:], 2
+        header, body, first = split(first_line), rest, 2
     else:
-        header, body, first = [str(n) for n in names], lines, 1
+        header, body, first = [str(n) for n in names], text, 1
     if len(set(header)) != len(header):
         raise ValueError(f"{path}: duplicate column names {header}")
-    rows = []
-    for lineno, line in enumerate(body, start=first):
-        row = split(line)
-        if len(row) != len(header):
-            raise ValueError(
-                f"{path}: line {lineno} has {len(row)} fields but there are {len(header)} "
-                "columns; all columns must have equal length"
-            )
-        try:
-            rows.append([float(c) if c else math.nan for c in row])
-        except ValueError:
-            raise ValueError(
-                f"{path}: line {lineno} has a non-numeric value"
-                + ("" if names is not None else " (a file without header needs --names)")
-            ) from None
-    if not rows:
+    if not body.strip():
         raise ValueError(f"{path}: no data rows after the header")
-    data = np.asarray(rows, dtype=np.float64)
+    data = _parse_fast(body, comma, len(header))
+    if data is None:  # the careful path: empty cells as NaN, or the precise error
+        rows = []
+        lines = (ln for ln in body.splitlines() if ln.strip())
+        for lineno, line in enumerate(lines, start=first):
+            row = split(line)
+            if len(row) != len(header):
+                raise ValueError(
+                    f"{path}: line {lineno} has {len(row)} fields but there are {len(header)} "
+                    "columns; all columns must have equal length"
+                )
+            try:
+                rows.append([float(c) if c else math.nan for c in row])
+            except ValueError:
+                raise ValueError(
+                    f"{path}: line {lineno} has a non-numeric value"
+                    + ("" if names is not None else " (a file without header needs --names)")
+                ) from None
+        data = np.asarray(rows, dtype=np.float64)
     return {name: data[:, j] for j, name in enumerate(header)}
+
+
+def _first_line(text: str):
+    """(first non-blank line, the text after it), or (None, "") for a blank text."""
+    pos = 0
+    while pos < len(text):
+        end = text.find("\n", pos)
+        end = len(text) if end < 0 else end
+        line = text[pos:end].rstrip("\r")
+        if line.strip():
+            return line, text[end + 1 :]
+        pos = end + 1
+    return None, ""
+
+
+_PANDAS_MIN_CHARS = 32_000_000  # below this, importing pandas costs more than loadtxt saves
+
+
+def _parse_fast(body: str, comma: bool, n_cols: int):
+    """An all-numeric, complete body parsed in C, or None when the careful path is needed
+    (quoted fields, empty cells, short or long rows, non-numbers: that path names the line)."""
+    import io
+    import sys
+
+    if comma and '"' in body:
+        return None
+    sep = "," if comma else None
+    try:
+        if "pandas" in sys.modules or len(body) > _PANDAS_MIN_CHARS:
+            import pandas as pd
+
+            data = pd.read_csv(io.StringIO(body), header=None, sep=sep or r"\s+",
+                               dtype=np.float64, keep_default_na=False, na_values=[""],
+                               engine="c").to_numpy(np.float64)
+        else:
+            data = np.loadtxt(io.StringIO(body), delimiter=sep, dtype=np.float64,
+                              comments=None, ndmin=2)
+    except Exception:  # any parse failure: the careful path reports it precisely
+        return None
+    if data.ndim != 2 or data.shape[1] != n_cols or np.isnan(data).any():
+        return None  # pandas pads short rows with NaN: let the careful path judge them
+    return data
