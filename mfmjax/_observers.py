@@ -17,7 +17,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from . import _boundary as _b
+from ._boundary import require_x64
 from ._linalg import conditioning_eigvals, expm, solve
 from ._model import Model
 from ._quadrature import gregory_weights
@@ -105,8 +108,11 @@ def _observe_forced(
 
 
 def _window(model: Model, signals: Signals, window, fn: str):
-    if not isinstance(model, Model) or not isinstance(signals, Signals):
-        raise TypeError(f"{fn}(): expected (Model, Signals)")
+    require_x64(fn)
+    if not isinstance(model, Model):
+        raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}")
+    if not isinstance(signals, Signals):
+        raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}")
     if model.n_inputs != signals.n_inputs:
         raise ValueError(
             f"{fn}(): the model has {model.n_inputs} inputs but the signals have "
@@ -124,7 +130,7 @@ def validation_window(signals: Signals, window, observer_window, n: int, fn: str
     if window is None:
         v0, v1 = 0, T - 1
     else:
-        w0, w1 = (float(v) for v in window)
+        w0, w1 = _b.window(fn, "validate" if name == "validate window" else name, window)
         v0, v1 = round((w0 - t0) / dt), round((w1 - t0) / dt)
         if v0 < 0 or v1 > T - 1 or v1 <= v0:
             raise ValueError(
@@ -137,7 +143,9 @@ def validation_window(signals: Signals, window, observer_window, n: int, fn: str
             f"{fn}(): the {name} holds {length} samples, need at least {need} for an "
             f"order-{n} observer; widen it"
         )
-    ob = length if observer_window is None else round(float(observer_window) / dt) + 1
+    if observer_window is not None:
+        observer_window = _b.number(fn, "observer_window", observer_window, lo=0, lo_open=True)
+    ob = length if observer_window is None else round(observer_window / dt) + 1
     if not MIN_WINDOW <= ob <= length:
         raise ValueError(
             f"{fn}(): observer_window must fit inside the {name} and hold at least "
@@ -159,8 +167,9 @@ def _checked(obs: Observation, fn: str) -> Observation:
                 f"{fn}(): the state is not observable on this window (cond(M0) = "
                 f"{float(obs.cond):.1e}); widen the window or check the model"
             )
-        return obs
-    return eqx.error_if(obs, obs.status != 0, f"{fn}(): unobservable window or overflow")
+    # under an outer jit/vmap the status stays in the result (read `obs.status`): an
+    # eqx.error_if here would keep the caller's program out of the persistent compile cache
+    return obs
 
 
 def observe(model: Model, signals: Signals, window=None, *, observer_window: float | None = None):
@@ -171,18 +180,22 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
     start (default: the whole window). The model's delays and intersample modes are used.
 
     **Returns:** an `Observation` (`x_initial`, `x_final`, `y_sim`, `E`, `cond`, `status`).
-    Raises a clear error for unobservable windows and overflowing (unstable) responses.
+    Raises a clear error for unobservable windows and overflowing (unstable) responses; under
+    an outer jit/vmap nothing can raise, and `status` (a `Status` bit set) says so instead.
     """
     start, length = _window(model, signals, window, "observe")
     ob = None
     if observer_window is not None:
-        ob = round(float(observer_window) / signals.dt) + 1
+        observer_window = _b.number("observe", "observer_window", observer_window, lo=0,
+                                    lo_open=True, fix="give a length in the record's time unit")
+        ob = round(observer_window / signals.dt) + 1
         if not MIN_WINDOW <= ob <= length:
             raise ValueError(
                 f"observe(): observer_window={observer_window:g} must hold {MIN_WINDOW} to "
                 f"{length} samples of the window"
             )
-    obs = _observe(model, signals.y, signals.u, signals.dt, start, length, ob)
+    obs = _observe(model.unlabelled(), signals.y, signals.u, signals.dt,
+                   jnp.asarray(start, dtype=jnp.int32), length, ob)
     return _checked(obs, "observe")
 
 
@@ -204,7 +217,16 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
 
     All windows have the same length, so this is one vmapped computation.
     """
-    length = round(float(T_ob) / signals.dt) + 1
+    require_x64("moving_final_states")
+    if not isinstance(signals, Signals):
+        raise TypeError(f"moving_final_states(): signals must be a Signals, got "
+                        f"{type(signals).__name__}")
+    T_ob = _b.number("moving_final_states", "T_ob", T_ob, lo=0, lo_open=True,
+                     fix="give the observer length in the record's time unit")
+    length = round(T_ob / signals.dt) + 1
+    times = _b.array("moving_final_states", "times", times, ndim=(0, 1))
+    if times.size == 0:
+        raise ValueError("moving_final_states(): times is empty; give at least one time t_j")
     times = jnp.atleast_1d(jnp.asarray(times, dtype=jnp.float64))
     ends = jnp.round((times - signals.t0) / signals.dt).astype(jnp.int32)
     e_np = [int(v) for v in ends]
@@ -214,7 +236,7 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
         )
     _window(model, signals, (signals.t0, signals.t0 + (length - 1) * signals.dt),
             "moving_final_states")
-    return _moving(model, signals.y, signals.u, signals.dt, ends, length)
+    return _moving(model.unlabelled(), signals.y, signals.u, signals.dt, ends, length)
 
 
 @eqx.filter_jit
@@ -231,5 +253,17 @@ def performance_index(model: Model, signals: Signals, window=None, *, observer_w
 
 def fit_percent(y, y_sim):
     """NRMSE fit as MATLAB's `compare`: 100 (1 - ||y - y_sim|| / ||y - mean(y)||)."""
+    traced = _b.is_traced(y) or _b.is_traced(y_sim)
+    if not traced:
+        require_x64("fit_percent")
+        y = _b.array("fit_percent", "y", y, ndim=1)
+        y_sim = _b.array("fit_percent", "y_sim", y_sim, ndim=1)
+        if y.shape != y_sim.shape or y.size < 2:
+            raise ValueError(f"fit_percent(): y and y_sim must be 1-D of equal length >= 2 "
+                             f"(got shapes {y.shape} and {y_sim.shape})")
+        if not np.ptp(y) > 0:
+            raise ValueError("fit_percent(): the fit of a constant output y is undefined "
+                             "(||y - mean(y)|| = 0); compare E or the mean square error instead")
     y, y_sim = jnp.asarray(y), jnp.asarray(y_sim)
-    return 100.0 * (1.0 - jnp.linalg.norm(y - y_sim) / jnp.linalg.norm(y - jnp.mean(y)))
+    spread = jnp.linalg.norm(y - jnp.mean(y))  # 0 for a constant y: fit undefined, NaN
+    return 100.0 * (1.0 - jnp.linalg.norm(y - y_sim) / jnp.where(spread > 0, spread, jnp.nan))

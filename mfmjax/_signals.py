@@ -15,6 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _boundary as _b
+
 INTERSAMPLE = ("zoh", "foh")
 _UNIFORM_RTOL = 1e-6  # allowed relative jitter of the time column against its mean step
 
@@ -81,13 +83,16 @@ class Signals(eqx.Module):
         output_name: str = "y",
         input_names: Sequence[str] | None = None,
     ):
-        y = jnp.asarray(y, dtype=jnp.float64)
+        _b.require_x64("Signals")
+        y = jnp.asarray(_b.array("Signals", "y", y, finite=False), dtype=jnp.float64)
         if y.ndim != 1:
             raise ValueError(f"Signals(): y must be 1-D (T,), got shape {y.shape}")
         T = y.shape[0]
+        if T < 2:
+            raise ValueError(f"Signals(): y has {T} sample(s); a record needs at least 2")
         if u is None:
             u = jnp.zeros((T, 0), dtype=jnp.float64)
-        u = jnp.asarray(u, dtype=jnp.float64)
+        u = jnp.asarray(_b.array("Signals", "u", u, finite=False), dtype=jnp.float64)
         if u.ndim == 1:
             u = u[:, None]
         if u.ndim != 2:
@@ -101,7 +106,7 @@ class Signals(eqx.Module):
         if t is not None:
             if dt is not None:
                 raise ValueError("Signals(): give either t (a time column) or dt, not both")
-            t = np.asarray(t, dtype=np.float64)
+            t = _b.array("Signals", "t", t, finite=False)
             if t.shape != (T,):
                 raise ValueError(
                     f"Signals(): length mismatch: time has {t.shape[0] if t.ndim else 0} "
@@ -126,9 +131,9 @@ class Signals(eqx.Module):
             t0 = float(t[0])
         if dt is None:
             raise ValueError("Signals(): give the sampling interval dt or a time column t")
-        dt = float(dt)
-        if not (math.isfinite(dt) and dt > 0):
-            raise ValueError(f"Signals(): dt must be > 0 and finite (got dt={dt})")
+        dt = _b.number("Signals", "dt", dt, lo=0, lo_open=True,
+                       fix="give the sampling interval in the record's time unit")
+        t0 = _b.number("Signals", "t0", t0, fix="give the time of the first sample")
         intersample = _per_input(intersample, K, "intersample", "foh", str)
         for k, mode in enumerate(intersample):
             if mode not in INTERSAMPLE:
@@ -143,7 +148,8 @@ class Signals(eqx.Module):
             )
         if delays is None:
             delays = jnp.zeros(K, dtype=jnp.float64)
-        delays = jnp.atleast_1d(jnp.asarray(delays, dtype=jnp.float64))
+        delays = jnp.atleast_1d(jnp.asarray(_b.array("Signals", "delays", delays, finite=False),
+                                            dtype=jnp.float64))
         if delays.shape != (K,):
             raise ValueError(
                 f"Signals(): delays needs one entry per input ({K}), got shape {delays.shape}"

@@ -15,7 +15,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from . import _boundary as _b
+from ._boundary import require_x64
 from ._linalg import expm
 from ._model import Model
 from ._quadrature import delayed_samples, shift_samples, split_delay
@@ -103,25 +106,55 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
 
     Each input follows the model's intersample mode (zoh/foh) and delay exactly (see module).
     `x0` defaults to zeros (state of eq. 18). Jit/vmap/grad friendly (over models, `u`, `x0`).
-    Raises (also under jit, via `eqx.error_if`) if the response overflows float64.
+    Non-finite `u` or `x0` raise a ValueError; so does a response that leaves the float64 range
+    (an unstable model, or inputs too large), with the model's unstable poles named. Under an
+    outer jit/vmap nothing can raise: an overflowing response comes back as NaN.
 
     **Returns:** y (T,), or (y, x) with the states (T, n) when `return_state`.
     """
+    require_x64("simulate")
+    if not isinstance(model, Model):
+        raise TypeError(f"simulate(): model must be a Model, got {type(model).__name__}")
+    K = model.n_inputs
+    u = _b.array("simulate", "u", u, ndim=(1, 2))
     u = jnp.asarray(u, dtype=jnp.float64)
     if u.ndim == 1:
         u = u[:, None]
-    K = model.n_inputs
-    if u.ndim != 2 or u.shape[1] != K:
-        raise ValueError(f"simulate(): u must have shape (T, {K}) for this model, got {u.shape}")
+    if u.shape[1] != K or u.shape[0] < 1:
+        raise ValueError(
+            f"simulate(): u must have shape (T, {K}) for this model (time-major, one column per "
+            f"input), got {u.shape}" + ("; transpose it (u.T)" if u.shape[0] == K else "")
+        )
     if x0 is None:
         x0 = jnp.zeros(model.n)
-    x0 = jnp.asarray(x0, dtype=jnp.float64)
+    x0 = jnp.asarray(_b.array("simulate", "x0", x0), dtype=jnp.float64)
     if x0.shape != (model.n,):
         raise ValueError(f"simulate(): x0 must have shape ({model.n},), got {x0.shape}")
-    if not dt > 0:
-        raise ValueError(f"simulate(): dt must be > 0 (got {dt})")
-    y, xs, status = simulate_status(model, u, x0, float(dt))
-    y = eqx.error_if(
-        y, status != 0, "simulate(): the response overflows float64 (unstable model)"
-    )
+    dt = _b.number("simulate", "dt", dt, lo=0, lo_open=True, fix="give the sampling interval")
+    y, xs, status = _simulate(model.unlabelled(), u, x0, dt)
+    if _b.is_traced(status) or _b.is_traced(y):
+        # no eqx.error_if here: a program holding one is never written to the persistent
+        # compilation cache; the overflow shows as NaN instead of a frozen response
+        y = jnp.where(status != 0, jnp.nan, y)
+    elif int(status) != 0 or not bool(jnp.all(jnp.isfinite(y))):
+        raise ValueError(_overflow_message(model, u, x0))
     return (y, xs) if return_state else y
+
+
+_simulate = eqx.filter_jit(simulate_status)  # one cacheable program (dt static, as in observe)
+
+
+def _overflow_message(model: Model, u, x0) -> str:
+    """Why a concrete simulation left the float64 range: unstable poles, or huge inputs."""
+    a = np.asarray(model.a, dtype=np.float64)
+    poles = np.roots(a[::-1]) if np.all(np.isfinite(a)) else np.array([np.nan])
+    bad = poles[~(poles.real <= 0)]
+    if bad.size:
+        listed = ", ".join(f"{p.real:.4g}{p.imag:+.4g}j" if p.imag else f"{p.real:.4g}"
+                           for p in bad)
+        return (f"simulate(): the response overflows float64 because the model is unstable "
+                f"(poles with positive real part: {listed}); simulate a shorter record or "
+                "use a stable model")
+    scale = max(float(np.max(np.abs(u), initial=0.0)), float(np.max(np.abs(x0), initial=0.0)))
+    return (f"simulate(): the response overflows float64 (largest |u| or |x0| = {scale:.3g}; "
+            f"states above {_BIG:g} count as overflow); rescale the inputs")

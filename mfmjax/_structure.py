@@ -6,6 +6,8 @@ from collections.abc import Sequence
 
 import equinox as eqx
 
+from . import _boundary as _b
+
 
 class Structure(eqx.Module):
     r"""Orders of $\sum_{i=0}^n a_i y^{(i)} = \sum_k \sum_{j=0}^{m_k} b_{kj} u_k^{(j)}$.
@@ -21,13 +23,10 @@ class Structure(eqx.Module):
     m: tuple[int, ...] = eqx.field(static=True)
 
     def __init__(self, n: int, m: int | Sequence[int] = ()):
-        if isinstance(n, bool) or int(n) != n or n < 1:
-            raise ValueError(f"Structure(): n must be an integer >= 1 (got n={n})")
-        n = int(n)
-        m = (m,) if isinstance(m, int) else tuple(m)
+        n = _b.integer("Structure", "n", n, lo=1, fix="the output order is a whole number")
+        m = _b.values("Structure", "m", m, allow_empty=True)
+        m = [_b.integer("Structure", f"m[{k}]", mk, lo=0) for k, mk in enumerate(m)]
         for k, mk in enumerate(m):
-            if isinstance(mk, bool) or int(mk) != mk or mk < 0:
-                raise ValueError(f"Structure(): m[{k}] must be an integer >= 0 (got {mk})")
             if mk > n:
                 raise ValueError(
                     f"Structure(): m[{k}]={mk} exceeds n={n}; numerator orders must be <= n"

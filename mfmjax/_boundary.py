@@ -1,0 +1,202 @@
+"""Argument checks shared by the public functions (run before anything is traced).
+
+Every checker takes the public function's name `fn` and the argument's `name`, and raises a
+`ValueError` (wrong value) or `TypeError` (wrong kind) whose message names the function, the
+argument, the value received and the fix, e.g.
+"search(): n must be an integer >= 1 (got n=2.5); give whole orders such as n=(1, 2, 3)".
+A bool is never taken as a number. JAX tracers (values under jit/vmap/grad) pass through the
+value checks untouched: only their types and shapes are checked.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+import jax
+import numpy as np
+
+X64_FIX = 'call jax.config.update("jax_enable_x64", True) before using mfmjax'
+
+
+def require_x64(fn: str) -> None:
+    """Refuse to run with JAX's float64 mode off (every result would silently be float32)."""
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError(
+            f"{fn}(): JAX float64 mode is off (jax_enable_x64=False), so every result would be "
+            f"float32 (about 20 % parameter error); {X64_FIX}"
+        )
+
+
+def is_traced(x) -> bool:
+    return isinstance(x, jax.core.Tracer)
+
+
+def _show(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def number(fn: str, name: str, value, *, lo=None, hi=None, lo_open: bool = False,
+           hi_open: bool = False, fix: str = "", traced: bool = False):
+    """A finite real number (not a bool, str or array of several values) in [lo, hi].
+
+    Returns a Python float (or the tracer itself when `traced` allows one)."""
+    if traced and is_traced(value):
+        return value
+    if isinstance(value, (bool, np.bool_)) or isinstance(value, (str, bytes)):
+        raise TypeError(f"{fn}(): {name} must be a number, got {type(value).__name__} "
+                        f"{_show(value)}{'; ' + fix if fix else ''}")
+    if isinstance(value, (np.ndarray, jax.Array)):
+        if value.size != 1 or value.dtype == bool or not np.issubdtype(value.dtype, np.number):
+            raise TypeError(f"{fn}(): {name} must be one number, got an array of shape "
+                            f"{value.shape} ({value.dtype})")
+        value = value.reshape(())[()]
+    if not isinstance(value, numbers.Real):
+        raise TypeError(f"{fn}(): {name} must be a real number, got {type(value).__name__} "
+                        f"{_show(value)}")
+    v = float(value)
+    bounds = ""
+    if lo is not None:
+        bounds += f" {'>' if lo_open else '>='} {lo:g}"
+    if hi is not None:
+        bounds += f"{' and' if lo is not None else ''} {'<' if hi_open else '<='} {hi:g}"
+    ok = math.isfinite(v)
+    if ok and lo is not None:
+        ok = v > lo if lo_open else v >= lo
+    if ok and hi is not None:
+        ok = v < hi if hi_open else v <= hi
+    if not ok:
+        what = f"{bounds.strip()} and finite" if bounds else "a finite number"
+        raise ValueError(f"{fn}(): {name} must be {what} (got {name}={v:g})"
+                         f"{'; ' + fix if fix else ''}")
+    return v
+
+
+def integer(fn: str, name: str, value, *, lo=None, hi=None, fix: str = "") -> int:
+    """A whole number (an int, or a float with an integral value; never a bool) in [lo, hi]."""
+    if isinstance(value, (np.ndarray, jax.Array)) and value.size == 1 and np.issubdtype(
+            value.dtype, np.integer):
+        value = int(value.reshape(())[()])
+    v = number(fn, name, value, fix=fix)
+    if v != int(v):
+        raise ValueError(f"{fn}(): {name} must be an integer (got {name}={v:g})"
+                         f"{'; ' + fix if fix else ''}")
+    v = int(v)
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        rng = (f">= {lo}" if hi is None else f"in [{lo}, {hi}]") if lo is not None else f"<= {hi}"
+        raise ValueError(f"{fn}(): {name} must be an integer {rng} (got {name}={v})"
+                         f"{'; ' + fix if fix else ''}")
+    return v
+
+
+def values(fn: str, name: str, value, *, allow_empty: bool = False) -> list:
+    """A scalar or a flat sequence as a list (a string or a nested sequence is refused)."""
+    if isinstance(value, (str, bytes)):
+        raise TypeError(f"{fn}(): {name} must be a number or a sequence of numbers, got the "
+                        f"string {_show(value)}")
+    if isinstance(value, (np.ndarray, jax.Array)):
+        if value.ndim > 1:
+            raise ValueError(f"{fn}(): {name} must be a number or a flat sequence, got an "
+                             f"array of shape {value.shape}")
+        out = list(np.asarray(value).reshape(-1))
+    elif isinstance(value, (list, tuple, range)):
+        out = list(value)
+    else:
+        out = [value]
+    if not out and not allow_empty:
+        raise ValueError(f"{fn}(): {name} is empty (got {name}={_show(value)}); give at least "
+                         "one value")
+    return out
+
+
+def numbers_(fn: str, name: str, value, **kw) -> list[float]:
+    """A number or a non-empty flat sequence of numbers, each checked by `number(**kw)`."""
+    return [number(fn, f"{name}[{i}]" if isinstance(value, (list, tuple, np.ndarray))
+                   else name, v, **kw) for i, v in enumerate(values(fn, name, value))]
+
+
+def integers(fn: str, name: str, value, **kw) -> list[int]:
+    """An integer or a non-empty flat sequence of integers, each checked by `integer(**kw)`."""
+    return [integer(fn, f"{name}[{i}]" if isinstance(value, (list, tuple, np.ndarray))
+                    else name, v, **kw) for i, v in enumerate(values(fn, name, value))]
+
+
+def window(fn: str, name: str, value):
+    """None or a time window (start, end): two finite numbers with start < end."""
+    if value is None:
+        return None
+    if isinstance(value, (str, bytes)) or not isinstance(
+            value, (list, tuple, np.ndarray, jax.Array)):
+        raise TypeError(f"{fn}(): {name} must be a pair (start, end) of times, got "
+                        f"{type(value).__name__} {_show(value)}; e.g. {name}=(0.0, 100.0)")
+    vals = list(np.asarray(value).reshape(-1)) if not isinstance(value, (list, tuple)) \
+        else list(value)
+    if len(vals) != 2:
+        raise ValueError(f"{fn}(): {name} must be a pair (start, end) of times, got "
+                         f"{len(vals)} value(s) {_show(value)}; e.g. {name}=(0.0, 100.0)")
+    w0 = number(fn, f"{name}[0]", vals[0])
+    w1 = number(fn, f"{name}[1]", vals[1])
+    if not w0 < w1:
+        raise ValueError(f"{fn}(): {name} must have start < end (got {name}=({w0:g}, {w1:g}))")
+    return w0, w1
+
+
+def array(fn: str, name: str, value, *, ndim=None, finite: bool = True):
+    """A real array (not bool, str or complex) of `ndim` (int or tuple of allowed ndims).
+
+    Returns a float64 numpy array, or the value itself when it is a tracer (dtype and ndim are
+    checked; finiteness is not)."""
+    if value is None:
+        raise TypeError(f"{fn}(): {name} is missing (got None); give an array of samples")
+    if isinstance(value, (str, bytes)):
+        raise TypeError(f"{fn}(): {name} must be an array of numbers, got the string "
+                        f"{_show(value)}")
+    traced = is_traced(value)
+    if traced or isinstance(value, (np.ndarray, jax.Array)):
+        dtype = value.dtype
+    else:
+        try:
+            dtype = np.asarray(value).dtype
+        except (ValueError, TypeError):
+            raise TypeError(f"{fn}(): {name} must be a rectangular array of numbers "
+                            f"(got {_show(value)})") from None
+    if dtype == bool:
+        raise TypeError(f"{fn}(): {name} is a bool array; booleans are not samples, convert "
+                        f"them explicitly (e.g. {name}.astype(float))")
+    if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):
+        raise TypeError(f"{fn}(): {name} must hold real numbers, got dtype {dtype}")
+    shape = np.shape(value)
+    allowed = (ndim,) if isinstance(ndim, int) else ndim
+    if allowed is not None and len(shape) not in allowed:
+        want = " or ".join(f"{d}-D" for d in allowed)
+        raise ValueError(f"{fn}(): {name} must be {want}, got shape {shape}")
+    if traced:
+        return value
+    arr = np.asarray(value, dtype=np.float64)
+    if finite and not np.all(np.isfinite(arr)):
+        bad = np.argwhere(~np.isfinite(arr))[0]
+        where = f" at index {tuple(int(i) for i in bad)}" if arr.ndim else ""
+        raise ValueError(f"{fn}(): {name} has a NaN or inf value{where}; remove or "
+                         "interpolate non-finite samples first")
+    return arr
+
+
+def choice(fn: str, name: str, value, options) -> str:
+    """One of a few option strings."""
+    if not isinstance(value, str) or value not in options:
+        raise ValueError(f"{fn}(): unknown {name} {_show(value)}; use one of {tuple(options)}")
+    return value
+
+
+def min_support(fn: str, h, dt: float, name: str = "h") -> None:
+    """A modulating function's support must cover at least 2 sampling intervals."""
+    if is_traced(h):
+        return
+    hv = np.asarray(h, dtype=np.float64)
+    if hv.size and float(np.min(hv)) < 2 * dt * (1 - 1e-12):
+        raise ValueError(
+            f"{fn}(): {name}={float(np.min(hv)):g} is shorter than 2 sampling intervals "
+            f"(dt={dt:g}); h must cover at least 2 samples (h >= {2 * dt:g}), or the "
+            "quadrature cannot resolve the modulating function"
+        )
