@@ -10,6 +10,7 @@ _jax.config.update("jax_enable_x64", True)
 
 from . import datasets as datasets  # noqa: E402
 from . import online as online  # noqa: E402
+from ._cache import enable_compile_cache as enable_compile_cache  # noqa: E402
 from ._gram import gram as gram  # noqa: E402
 from ._gram import modulated_signals as modulated_signals  # noqa: E402
 from ._identify import identify as identify  # noqa: E402

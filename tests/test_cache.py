@@ -1,0 +1,161 @@
+"""Persistent compilation cache: directory rules, pruning, and cacheable public programs."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+import mfmjax
+from mfmjax import _cache
+
+# Runs simulate, identify and observe with the cache on in argv[1] and reports, per step, the
+# new cache files and the persistent-cache log lines (jax_explain_cache_misses logs every
+# miss, hit and refused write at WARNING).
+_SCRIPT = r"""
+import json, logging, os, sys
+import numpy as np
+import jax
+import mfmjax
+
+d = mfmjax.enable_compile_cache(sys.argv[1])
+jax.config.update("jax_explain_cache_misses", True)
+msgs = []
+
+class _Collect(logging.Handler):
+    def emit(self, rec):
+        msgs.append(rec.getMessage())
+
+lg = logging.getLogger("jax._src.compiler")
+lg.addHandler(_Collect())
+lg.setLevel(logging.DEBUG)
+lg.propagate = False
+
+def files():
+    return {f for f in os.listdir(d) if f.endswith("-cache")}
+
+def names(new, tag):
+    return sorted(m.split("'")[1] for m in new if tag in m)
+
+out = {"dir": d}
+
+def step(name, fn):
+    before, m0 = files(), len(msgs)
+    r = fn()
+    jax.block_until_ready(r)
+    new = msgs[m0:]
+    out[name] = {"new_files": len(files() - before),
+                 "compiled": names(new, "CACHE MISS"),
+                 "hits": names(new, "cache hit"),
+                 "refused": [m for m in new if "Not writing" in m]}
+    return r
+
+dt, T = 0.01, 1201
+t = np.arange(T) * dt
+u = np.sin(0.9 * t) + 0.5 * np.cos(2.3 * t)
+true = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]])
+y = step("simulate", lambda: mfmjax.simulate(true, u, None, dt=dt))
+sig = mfmjax.Signals(np.asarray(y), u, dt=dt)
+model = step("identify", lambda: mfmjax.identify(sig, mfmjax.Structure(2, [1]),
+                                                 mfmjax.ModulatingFunction(4, 4, 2.0)))
+step("observe", lambda: mfmjax.observe(model, sig).x_initial)
+print("RESULT " + json.dumps(out))
+"""
+
+
+def _run(script, cache):
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("JAX_COMPILATION_CACHE_DIR", "MFMJAX_NO_COMPILE_CACHE")}
+    proc = subprocess.run([sys.executable, str(script), str(cache)], capture_output=True,
+                          text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    line = [v for v in proc.stdout.splitlines() if v.startswith("RESULT ")][-1]
+    return json.loads(line[len("RESULT "):])
+
+
+def test_programs_are_written_and_read_back(tmp_path):
+    script = tmp_path / "probe.py"
+    script.write_text(_SCRIPT)
+    cache = tmp_path / "cache"
+    cold = _run(script, cache)
+    assert cold["dir"] == str(cache)
+    warm = _run(script, cache)
+    for name in ("simulate", "identify", "observe"):
+        c, w = cold[name], warm[name]
+        # every program compiled in the first process was written (no eqx.error_if or other
+        # host callback refused it) ...
+        assert c["refused"] == [], (name, c["refused"])
+        assert c["compiled"], name
+        assert c["new_files"] >= 1, name
+        # ... and the second process compiles nothing: it reads each of them back
+        assert w["compiled"] == [] and w["refused"] == [], (name, w)
+        assert w["new_files"] == 0, name
+        assert set(c["compiled"]) <= set(w["hits"]), (name, c["compiled"], w["hits"])
+
+
+def test_public_programs_hold_no_callbacks():
+    # a host callback (what eqx.error_if lowers to) keeps a program out of the cache; the
+    # lowered text of the public entry points under an outer jit must hold none
+    dt, T = 0.01, 401
+    t = np.arange(T) * dt
+    u = np.sin(0.9 * t)
+    model = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]])
+    y = np.asarray(mfmjax.simulate(model, u, None, dt=dt))
+    sig = mfmjax.Signals(y, u, dt=dt)
+    texts = {
+        "simulate": jax.jit(lambda uu: mfmjax.simulate(model, uu, None, dt=dt)).lower(u),
+        "observe": jax.jit(lambda yy: mfmjax.observe(model, mfmjax.Signals(yy, u, dt=dt)).E)
+        .lower(sig.y),
+    }
+    for name, lowered in texts.items():
+        assert "callback" not in lowered.as_text(), name
+
+
+def test_traced_overflow_is_reported_in_the_result():
+    unstable = mfmjax.Model.from_coefficients([-1.0, 0.0, 1.0], [[1.0]])
+    u = np.ones(20000)
+    y = jax.jit(lambda uu: mfmjax.simulate(unstable, uu, None, dt=0.1))(u)
+    assert bool(np.any(np.isnan(np.asarray(y))))  # eager: a ValueError (test_observers)
+    stable = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]])
+    assert np.all(np.isfinite(np.asarray(
+        jax.jit(lambda uu: mfmjax.simulate(stable, uu, None, dt=0.1))(u))))
+    sig = mfmjax.Signals(np.ones(20000), u, dt=0.1)
+    status = jax.jit(lambda s: mfmjax.observe(unstable, s).status)(sig)
+    assert int(status) & int(mfmjax.Status.OVERFLOW)
+
+
+def test_cache_dir_rules(monkeypatch, tmp_path):
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    default = _cache.cache_dir()
+    import jaxlib
+
+    assert os.path.dirname(default) == str(tmp_path / "xdg" / "mfmjax")
+    assert os.path.basename(default).startswith(f"jax-{jax.__version__}-{jaxlib.__version__}-")
+    assert _cache.cache_dir(tmp_path / "mine") == str(tmp_path / "mine")
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "env"))
+    assert _cache.cache_dir(tmp_path / "mine") == str(tmp_path / "env")
+
+
+def test_opt_out_and_bad_size(monkeypatch, tmp_path):
+    before = jax.config.jax_compilation_cache_dir
+    monkeypatch.setenv("MFMJAX_NO_COMPILE_CACHE", "1")
+    assert mfmjax.enable_compile_cache(tmp_path / "x") is None
+    assert jax.config.jax_compilation_cache_dir == before
+    assert not (tmp_path / "x").exists()
+    monkeypatch.delenv("MFMJAX_NO_COMPILE_CACHE")
+    with pytest.raises(ValueError, match="max_size_bytes must be a positive int"):
+        mfmjax.enable_compile_cache(tmp_path / "x", max_size_bytes=0)
+
+
+def test_prune_keeps_the_newest(tmp_path):
+    for i in range(5):
+        f = tmp_path / f"k{i}-cache"
+        f.write_bytes(b"x" * 100)
+        os.utime(f, (1000 + i, 1000 + i))
+    (tmp_path / "other.txt").write_text("kept")
+    _cache._prune(str(tmp_path), 250)  # room for two 100-byte entries: the newest two stay
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["k3-cache", "k4-cache", "other.txt"]
