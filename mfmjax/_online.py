@@ -552,37 +552,148 @@ def update(state: OnlineState, t, y, u):
 
 
 # -- checkpoints -------------------------------------------------------------------------------
+# Format (version 2): an uncompressed .npz (zip) holding `header` (JSON: format, version, the
+# configuration, `extra`, and per leaf its dtype and shape), one member per state leaf named by
+# its pytree path (`jax.tree_util.keystr`, e.g. "state.model['a']"), and `sha256`: the SHA-256
+# of the header text and of every leaf (path, dtype, shape, bytes) in sorted path order.
+# Loading matches leaves by path, so a change of the state's layout is refused (missing or
+# extra leaves named), never silently mis-assigned as with version 1's positional leaves.
+
+CHECKPOINT_VERSION = 2
+
+
+def _leaf_arrays(state: OnlineState) -> dict:
+    flat, _ = jax.tree_util.tree_flatten_with_path(state)
+    return {"state" + jax.tree_util.keystr(p): np.asarray(v, order="C") for p, v in flat}
+
+
+def _digest(header_text: str, arrays: dict) -> str:
+    import hashlib
+
+    h = hashlib.sha256(header_text.encode())
+    for key in sorted(arrays):
+        a = arrays[key]
+        h.update(f"\0{key}\0{a.dtype.str}\0{a.shape}\0".encode())
+        h.update(a.tobytes(order="C"))
+    return h.hexdigest()
+
+
+def _pack(config: dict, extra: dict, arrays: dict) -> bytes:
+    import io
+
+    header = json.dumps({
+        "format": FORMAT, "version": CHECKPOINT_VERSION, "config": config, "extra": extra,
+        "leaves": {k: [a.dtype.str, list(a.shape)] for k, a in sorted(arrays.items())},
+    }, sort_keys=True, allow_nan=False)
+    buf = io.BytesIO()
+    np.savez(buf, header=np.asarray(header), sha256=np.asarray(_digest(header, arrays)),
+             **arrays)
+    return buf.getvalue()
 
 
 def save(path, state: OnlineState, extra: dict | None = None) -> None:
-    """Write the whole state (configuration included) to one `.npz` file (`extra`: any JSON
-    data to keep with it, e.g. the wrapper's model records)."""
-    leaves = jax.tree_util.tree_leaves(state)
-    header = json.dumps({"format": FORMAT, "version": VERSION, "config": state.config.to_dict(),
-                         "extra": extra or {}})
-    with open(path, "wb") as fh:
-        np.savez(fh, header=np.asarray(header), **{f"leaf{i}": np.asarray(v)
-                                                   for i, v in enumerate(leaves)})
+    """Write the whole state (configuration included) to one `.npz` file, atomically (a
+    temporary file in the same folder, then `os.replace`: a crash mid-save leaves the previous
+    checkpoint intact). `extra`: any JSON data to keep with it (e.g. the wrapper's records)."""
+    from ._persist import atomic_write
+
+    if not isinstance(state, OnlineState):
+        raise TypeError("save(): state must be an OnlineState (from init, update or load)")
+    try:
+        data = _pack(state.config.to_dict(), _json_safe(extra or {}), _leaf_arrays(state))
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"save(): extra must be JSON data ({err})") from None
+    atomic_write(path, data)
+
+
+def _json_safe(x):
+    """NaN/inf floats as None (strict JSON), tuples as lists, numpy scalars as Python ones."""
+    if isinstance(x, dict):
+        return {str(k): _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _json_safe(x.tolist())
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
 
 
 def _load(path):
+    import zipfile
+
+    redo = "resume from an earlier checkpoint or start again from the data"
+    fail = f"load(): {path} is truncated or corrupted and cannot be used; {redo}"
     try:
-        f = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as err:
-        raise ValueError(f"load(): cannot read {path} ({err})") from None
-    with f:
-        header = json.loads(str(f["header"])) if "header" in f else {}
-        if header.get("format") != FORMAT or header.get("version") != VERSION:
-            raise ValueError(f"load(): {path} is not an mfmjax on-line checkpoint (v{VERSION})")
+        with open(path, "rb") as fh:
+            raw = fh.read()
+    except OSError as err:
+        raise ValueError(f"load(): cannot read {path}: {err.strerror}") from None
+    if not raw:
+        raise ValueError(f"load(): {path} is empty (0 bytes); {redo}")
+    import io
+
+    try:
+        with np.load(io.BytesIO(raw), allow_pickle=False) as f:
+            files = set(f.files)
+            header_text = str(f["header"]) if "header" in files else "{}"
+            header = json.loads(header_text)
+            if not isinstance(header, dict) or header.get("format") != FORMAT:
+                raise _Foreign()
+            if header.get("version") != CHECKPOINT_VERSION:
+                raise _Foreign(header.get("version"))
+            digest = str(f["sha256"]) if "sha256" in files else None
+            arrays = {k: f[k] for k in files - {"header", "sha256"}}
+    except _Foreign as err:
+        if err.args:
+            raise ValueError(
+                f"load(): {path} is an on-line checkpoint of format version {err.args[0]}; "
+                f"this mfmjax reads version {CHECKPOINT_VERSION} (leaves stored by path, with a "
+                "checksum): re-run the identifier on the data to write a new one"
+            ) from None
+        raise ValueError(f"load(): {path} is not an mfmjax on-line checkpoint "
+                         f"(v{CHECKPOINT_VERSION})") from None
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, UnicodeDecodeError,
+            RuntimeError) as err:  # zlib / zip / npy header errors of a damaged file
+        raise ValueError(f"{fail} ({type(err).__name__}: {str(err)[:80]})") from None
+    if digest is None or digest != _digest(header_text, arrays):
+        raise ValueError(f"load(): {path} fails its SHA-256 checksum (corrupted); {redo}")
+    try:
         like = init(OnlineConfig(**header["config"]))
-        leaves, treedef = jax.tree_util.tree_flatten(like)
-        new = [np.asarray(f[f"leaf{i}"]).astype(np.asarray(v).dtype).reshape(np.shape(v))
-               for i, v in enumerate(leaves)]
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"load(): {path} holds an invalid configuration ({err})") from None
+    expected = _leaf_arrays(like)
+    missing, extra_leaves = sorted(set(expected) - set(arrays)), sorted(set(arrays) - set(expected))
+    if missing or extra_leaves:
+        raise ValueError(
+            f"load(): {path} does not match this mfmjax's on-line state layout (missing leaves "
+            f"{missing or 'none'}, unknown leaves {extra_leaves or 'none'}); re-run the "
+            "identifier on the data to write a new checkpoint"
+        )
+    for key, want in expected.items():
+        got = arrays[key]
+        if got.dtype != want.dtype or got.shape != want.shape:
+            raise ValueError(
+                f"load(): {path}: leaf {key} has dtype {got.dtype} shape {got.shape}, the "
+                f"state needs {want.dtype} {want.shape}; the checkpoint does not fit this config"
+            )
+    flat, treedef = jax.tree_util.tree_flatten_with_path(like)
+    new = [arrays["state" + jax.tree_util.keystr(p)] for p, _ in flat]
     return jax.tree_util.tree_unflatten(treedef, new), header.get("extra", {})
 
 
+class _Foreign(Exception):
+    pass
+
+
 def load(path) -> OnlineState:
-    """Read a state written by `save`; resuming from it continues exactly where it stopped."""
+    """Read a state written by `save`; resuming from it continues exactly where it stopped.
+
+    Refuses, with a message saying so, a file of another format or version, an empty,
+    truncated or corrupted file (zip CRC or SHA-256 mismatch) and a state of another layout.
+    """
     return _load(path)[0]
 
 

@@ -1,34 +1,88 @@
-"""Save / load a model as JSON (coefficients, structure, MF settings, delays, modes, version)."""
+"""Save / load a model as JSON (coefficients, structure, MF settings, delays, modes, version),
+and the durable write that every mfmjax file goes through (`atomic_write`)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import math
+import os
+import tempfile
 
 import numpy as np
 
 from ._model import Model
 from ._modulating import ModulatingFunction
+from ._status import Status
 
 FORMAT = "mfmjax-model"
 VERSION = 1
 
 
+def _write_all(fh, data: bytes) -> None:  # one place to fail in tests (a crash mid-write)
+    fh.write(data)
+
+
+def atomic_write(path, data: bytes) -> None:
+    """Write `data` to `path` so that `path` always holds either its old or its new content.
+
+    The bytes go to a temporary file in the same folder, which is flushed to disk (fsync) and
+    then renamed over `path` (`os.replace`, atomic on POSIX and Windows). A crash or an error
+    half-way leaves the previous file untouched (an error also removes the temporary file; a
+    killed process may leave a `.<name>.*.tmp` file behind, which is never read).
+    """
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    try:
+        mode = os.stat(path).st_mode & 0o777
+    except OSError:
+        mask = os.umask(0)
+        os.umask(mask)
+        mode = 0o666 & ~mask
+    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            _write_all(fh, data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):  # make the rename itself durable (POSIX)
+        dfd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+
 def save_model(model: Model, path) -> None:
-    """Write `model` (concrete) to a JSON file."""
+    """Write `model` (concrete) to a JSON file (atomically: see `atomic_write`)."""
     doc = {"format": FORMAT, "version": VERSION, **model.to_dict()}
-    with open(path, "w") as fh:
-        json.dump(doc, fh, indent=2)
+    atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
 
 
 def load_model(path) -> Model:
-    """Read a model written by `save_model`; clear errors for malformed or foreign files."""
+    """Read a model written by `save_model`; clear errors for malformed or foreign files.
+
+    Refuses non-finite or mis-sized coefficients (a, b, offset, theta), an unknown status and
+    a theta whose length does not match the structure (n + 1 + sum(m_k + 1) [+ 1 offset]).
+    """
     try:
-        with open(path) as fh:
-            doc = json.load(fh)
+        with open(path, "rb") as fh:
+            raw = fh.read()
     except OSError as err:
         raise ValueError(f"load_model(): cannot read {path}: {err.strerror}") from None
+    try:
+        doc = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise ValueError(f"load_model(): {path} is not a text (JSON) file") from None
     except json.JSONDecodeError as err:
-        raise ValueError(f"load_model(): {path} is not valid JSON ({err.msg})") from None
+        raise ValueError(f"load_model(): {path} is not valid JSON ({err.msg}; truncated or "
+                         "corrupted?)") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ValueError(f"load_model(): {path} is not an mfmjax model file")
     if doc.get("version") != VERSION:
@@ -40,7 +94,7 @@ def load_model(path) -> Model:
         model = Model.from_coefficients(
             doc["a"],
             doc["b"],
-            offset=doc.get("offset"),
+            offset=_finite_or_none(doc.get("offset"), "offset"),
             delays=doc["delays"],
             intersample=doc["intersample"],
             output_name=doc.get("output_name", "y"),
@@ -48,9 +102,32 @@ def load_model(path) -> Model:
         )
         if doc.get("h") is not None:
             model = _with_mf(model, doc)
-    except (KeyError, TypeError) as err:
-        raise ValueError(f"load_model(): {path} is missing or has a bad field ({err})") from None
+    except KeyError as err:
+        raise ValueError(f"load_model(): {path} has no field {err}") from None
+    except (TypeError, ValueError) as err:
+        msg = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise ValueError(f"load_model(): {path} has a bad field: {msg}") from None
     return model
+
+
+def _finite_or_none(v, name):
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ValueError(f"{name} must be a finite number or null (got {v!r})")
+    return float(v)
+
+
+def _status(text) -> int:
+    if text is None or text == "ok":
+        return 0
+    names = {f.name.lower(): f.value for f in Status}
+    bits = 0
+    for part in str(text).split(","):
+        if part not in names:
+            raise ValueError(f"status has the unknown flag {part!r} (known: {sorted(names)})")
+        bits |= names[part]
+    return bits
 
 
 def _with_mf(model: Model, doc: dict) -> Model:
@@ -58,7 +135,17 @@ def _with_mf(model: Model, doc: dict) -> Model:
     import jax.numpy as jnp
 
     mf = ModulatingFunction(doc["N"], doc["M"], doc["h"])
-    fields = dict(mf=mf, theta=jnp.asarray(np.asarray(doc["theta"], dtype=np.float64)))
+    theta = np.asarray(doc["theta"], dtype=np.float64)
+    size = model.n + 1 + sum(mk + 1 for mk in model.m) + int(model.has_offset)
+    if theta.shape != (size,):
+        raise ValueError(
+            f"theta has {theta.size} values but n={model.n}, m={list(model.m)}"
+            f"{' and an offset' if model.has_offset else ''} need {size}"
+        )
+    if not np.all(np.isfinite(theta)):
+        raise ValueError("theta contains NaN or inf")
+    fields = dict(mf=mf, theta=jnp.asarray(theta),
+                  status=jnp.asarray(_status(doc.get("status")), dtype=jnp.int32))
     for key in ("J", "J_rel", "cond"):
         fields[key] = jnp.asarray(np.nan if doc.get(key) is None else float(doc[key]))
     return eqx.tree_at(

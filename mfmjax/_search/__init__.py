@@ -1,0 +1,35 @@
+r"""Batched structure search over (N, M, h, delays) x (n, m_1..m_K): one compiled computation.
+
+Work sharing:
+
+- for one (h, delays), every $\phi^{(i)}$ of every (N, M) is a polynomial of degree
+  $\le N + M$ in $s/h$. Each signal (output, inputs, offset, and the feed-through sources of
+  candidates with $m_k = n$) is convolved once with the exact weights of the shifted Legendre
+  polynomials $P_q(2s/h - 1)$ (`legendre_weights`, real FFT): its sliding moments. Every
+  column of $c(t)$ for every (N, M) is an exact combination $C_{N,M}$ of moments, so with the
+  moment Gram $H$ (one per (h, delays)) every Gram is $G_{N,M} = C_{N,M} H C_{N,M}^T$: the
+  convolutions and the O(T) Gram work are shared across N, M, orders and derivatives;
+- every structure of order n is a masked sub-block of its order's largest Gram: candidates
+  are grouped by n (`_Class`: the (N, M) with N, M >= n and the structures of order n, in a
+  compact layout with only the columns order n can use), and `constrained_solve` with a column
+  mask solves each class batched (masked columns get $\theta_j = 0$), exactly the problem
+  `identify` solves for that structure. Its conditioning (flag `ill_conditioned`, `cond`)
+  comes from Householder tridiagonalisation + Sturm bisection (`_linalg`);
+- every candidate is then simulated from its initial-state-observer estimate on the validation
+  window (eq. 14, 17) through a zero-padded realisation of order $n_{max}$ with a state mask,
+  in vmapped batches of 64 (`lax.map`) so memory stays flat.
+
+(h, delays) settings are processed in chunks of fixed size (one compilation for the whole
+grid, memory flat in the candidate count; results go straight into preallocated columns).
+Each chunk's setting axis is sharded over all `jax.devices()` with a 1-D mesh
+(`NamedSharding`); within a device, the signal-sized work (moments, H) runs one setting at a
+time (`lax.map`: cache-sized) and the small solves are batched over the whole chunk.
+"""
+
+from ._engine import run_plan as run_plan
+from ._grid import SCORES as SCORES
+from ._grid import plan_search as plan_search
+from ._result import SearchResult as SearchResult
+from ._search import search as search
+from ._validation import padded_forced as padded_forced
+from ._validation import validate_candidate as validate_candidate

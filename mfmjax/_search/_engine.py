@@ -1,0 +1,174 @@
+"""The compiled chunk: Grams of every (N, M) from the moments, the order classes' masked
+solves, the validation simulations; and the driver that runs a plan chunk by chunk."""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._identify import FEEDTHROUGH_STEPS
+from .._signals import Signals
+from .._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
+from ._grid import ChunkStatic, OrderClass, Plan
+from ._moments import moment_gram
+from ._result import SearchResult, collect
+from ._validation import validate_candidate
+
+
+def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, structs, nm):
+    """All candidates of a chunk of (h, delays) groups: for every group, the classes' (N, M)
+    x structure products, flattened in class order: outputs (G, C_group, ...)."""
+    K = sig.n_inputs
+    n_max, m_max = static.n_max, static.m_max
+    p = n_max + 1 + sum(mk + 1 for mk in m_max) + int(sig.offset)
+    n_src, Q = len(static.sources), static.degree + 1
+    finite = jnp.isfinite(sig.y).all() & jnp.isfinite(sig.u).all()
+    spread = jnp.max(sig.u, axis=0, initial=-jnp.inf) - jnp.min(sig.u, axis=0, initial=jnp.inf)
+    excited = jnp.all(spread > 1e-12 * jnp.maximum(
+        jnp.max(jnp.abs(sig.u), axis=0, initial=0.0), 1e-300))
+    hpow_i = jnp.asarray(static.col_deriv, dtype=jnp.float64)
+    src_of = np.asarray(static.col_source)
+    pad = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])  # b blocks in the padded layout
+
+    def one_nm(H, W, scale, h, coef):
+        Cf = coef * (h ** (-hpow_i))[:, None, None]  # (p_ext, sources, Q)
+        Cflat = Cf.reshape(Cf.shape[0], n_src * Q)
+        Gx = Cflat @ H @ Cflat.T
+        w = Cflat[:p] @ W.reshape(n_src * Q, -1)  # column kernels
+        bounds = jnp.sum(jnp.abs(w), axis=1) * scale[src_of]
+        alive = jnp.sqrt(jnp.maximum(jnp.diagonal(Gx)[:p], 0.0)) > DEAD_COLUMN_RTOL * bounds
+        return Gx, alive
+
+    def solve(Gx, alive, h, N, M, st, cls: OrderClass):
+        """One candidate of class `cls` in its compact layout; results in the padded one."""
+        n, sel = cls.n, np.asarray(cls.sel)
+        pc = len(sel)
+        off = np.cumsum([n + 1] + [mk + 1 for mk in cls.m])  # start of each b block
+        mask, ft = st["mask"], st["ft"]
+        active = mask & alive
+        eta = jnp.where(mask, eta_full[sel], 0.0)
+        G0 = Gx[:pc, :pc]
+        G = G0
+        if static.ft_inputs:
+            theta, _, _ = constrained_solve(G0, eta, active, conditioning=False)
+            for _ in range(FEEDTHROUGH_STEPS):
+                an = jnp.where(theta[n] != 0, theta[n], 1.0)
+                P = jnp.eye(Gx.shape[0], pc)
+                for qi, k in enumerate(static.ft_inputs):
+                    Dk = jnp.where(ft[k], theta[off[k] + n] / an, 0.0)
+                    rows = pc + qi * (n + 1) + np.arange(n + 1)
+                    P = P.at[rows, np.arange(n + 1)].set(-Dk)
+                G = P.T @ Gx @ P
+                theta, _, _ = constrained_solve(G, eta, active, conditioning=False)
+        theta, cond, reduced = constrained_solve(G, eta, active)
+        dead = jnp.any(mask & ~alive)
+        status, div, quad, J_rel = finish_solve(theta, G, reduced, n, finite, excited & ~dead)
+        theta = jnp.zeros(p).at[sel].set(theta)  # padded layout from here on
+        norm = theta / div
+        b = [jnp.zeros(n_max + 1).at[: m_max[k] + 1].set(norm[pad[k] : pad[k] + m_max[k] + 1])
+             for k in range(K)]
+        return dict(
+            theta=theta, a=norm[: n_max + 1], b=jnp.stack(b, 0) if K else jnp.zeros((0, n_max + 1)),
+            offset=norm[p - 1] if sig.offset else jnp.asarray(0.0),
+            J=J_rel,
+            J_raw=h ** (N + M + 1) * jnp.sqrt(quad), cond=cond, status=status,
+        )
+
+    def grams(hd):  # one (h, delays) setting: the Gram of every (N, M)
+        h, delays = hd
+        H, W, scale = moment_gram(sig, static, h, delays)
+        return jax.vmap(lambda coef: one_nm(H, W, scale, h, coef))(nm["coef"])
+
+    def solve_group(h, Gx, alive):
+        outs = []
+        for cls, st in zip(static.classes, structs):
+            r, ext = np.asarray(cls.nm), np.asarray(cls.sel_ext)
+            Gc, ac = Gx[r][:, ext[:, None], ext[None, :]], alive[r][:, np.asarray(cls.sel)]
+
+            def per_nm(G, a, N, M, cls=cls, st=st):
+                return jax.vmap(lambda s: solve(G, a, h, N, M, s, cls))(st)
+
+            o = jax.vmap(per_nm)(Gc, ac, nm["N"][r], nm["M"][r])  # (NM_c, S_c, ...)
+            outs.append(jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), o))
+        return {key: jnp.concatenate([o[key] for o in outs]) for key in outs[0]}
+
+    # the signal-sized work one setting at a time (cache-sized; vmapped over the devices'
+    # blocks of the sharded axis), the small solves batched over all of them
+    per_dev = (static.devices, -1)
+    Gx, alive = jax.vmap(lambda hd: jax.lax.map(grams, hd))(
+        (groups["h"].reshape(per_dev), groups["delays"].reshape(per_dev + (K,))))
+    Gx, alive = Gx.reshape((-1,) + Gx.shape[2:]), alive.reshape((-1,) + alive.shape[2:])
+    out = jax.vmap(solve_group)(groups["h"], Gx, alive)  # (G, C_group, ...)
+    shape = out["status"].shape
+    if not static.simulate:  # equation error only (score J)
+        nan = jnp.full(shape, jnp.nan)
+        return dict(out, E=nan, fit=nan, aic=nan, bic=nan, status=out["status"].astype(jnp.int32))
+    per_col = {key: jnp.concatenate([jnp.tile(st[key], len(cls.nm))
+                                     for cls, st in zip(static.classes, structs)])
+               for key in ("n", "k")}
+    flat = {
+        "a": out["a"].reshape(-1, n_max + 1),
+        "b": out["b"].reshape(-1, K, n_max + 1),
+        "offset": out["offset"].reshape(-1),
+        "n": jnp.broadcast_to(per_col["n"], shape).reshape(-1),
+        "k": jnp.broadcast_to(per_col["k"], shape).reshape(-1),
+        "delays": jnp.broadcast_to(groups["delays"][:, None, :], shape + (K,)).reshape(-1, K),
+    }
+    val = jax.lax.map(lambda c: validate_candidate(sig, static, c), flat, batch_size=static.batch)
+    val = {key: v.reshape(shape) for key, v in val.items()}
+    status = (out["status"] | val.pop("status")).astype(jnp.int32)
+    return dict(out, status=status, **val)
+
+
+chunk_jit = eqx.filter_jit(evaluate_chunk)
+
+
+def place(x: np.ndarray, sharding):
+    """A global array split over the mesh (works with one or several processes)."""
+    return jax.make_array_from_callback(x.shape, sharding, lambda idx: x[idx])
+
+
+def run_plan(plan: Plan, signals: Signals, progress=None) -> SearchResult:
+    """Evaluate a plan's grid on `signals` (same length and layout as the plan's record)."""
+    static, hd, chunk, K = plan.static, plan.hd, plan.chunk, plan.n_inputs
+    if (signals.n_samples, signals.n_inputs) != (plan.n_samples, K):
+        raise ValueError("search: the signals do not match the plan's record length and inputs")
+    col_nm, col_struct = plan.columns
+    Cg = len(col_nm)  # candidates per (h, delays) setting
+    cols, times = {}, []
+    for c0 in range(0, len(hd), chunk):
+        idx = list(range(c0, min(c0 + chunk, len(hd))))
+        real = len(idx)
+        idx = idx + [idx[-1]] * (chunk - real)  # pad the last chunk: same shapes
+        g = {
+            "h": np.asarray([hd[i][0] for i in idx]),
+            "delays": np.asarray([hd[i][1] for i in idx], dtype=np.float64).reshape(chunk, K),
+        }
+        g = {k: place(v, plan.sharding) for k, v in g.items()}
+        t0 = time.perf_counter()
+        res = jax.block_until_ready(
+            chunk_jit(signals.unlabelled(), static, plan.eta, g, plan.struct_arr, plan.nm))
+        if jax.process_count() > 1:  # multi-host: every process gets every candidate
+            from jax.experimental import multihost_utils
+
+            res = multihost_utils.process_allgather(res, tiled=True)
+        for key, val in res.items():  # straight into the preallocated columns: memory flat
+            val = np.asarray(val)[:real]
+            if key not in cols:
+                cols[key] = np.empty((len(hd) * Cg,) + val.shape[2:], val.dtype)
+            cols[key][c0 * Cg : (c0 + real) * Cg] = val.reshape((-1,) + val.shape[2:])
+        del res
+        times.append(time.perf_counter() - t0)
+        if progress is not None:
+            progress(min(c0 + chunk, len(hd)), len(hd))
+    # the first chunk compiles: its excess over a typical chunk is the compile time
+    typical = float(np.median(times[1:])) if len(times) > 1 else 0.0
+    t_compile, t_run = max(times[0] - typical, 0.0), sum(times) - max(times[0] - typical, 0.0)
+    n_set = len(hd)
+    cols["group"] = np.repeat(np.arange(n_set), Cg) * len(plan.nm["N"]) + np.tile(col_nm, n_set)
+    cols["struct"] = np.tile(col_struct, n_set)
+    return collect(cols, plan.combos, plan.structs, signals, static, plan.score, t_compile, t_run)

@@ -1,0 +1,257 @@
+"""The grid plan of a search: candidate structures, (N, M) pairs, order classes and every
+static that fixes the compiled chunk's shapes (`ChunkStatic`), built once per grid."""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._gram import MIN_VALID
+from .._modulating import MAX_DEGREE
+from .._observers import validation_window
+from .._quadrature import (
+    kernel_length,
+    legendre_coefficients,
+    support_samples,
+)
+from .._signals import Signals
+
+SCORES = ("E", "J", "fit", "aic", "bic")
+
+
+VALIDATION_BATCH = 64  # candidates per vmapped batch of the validation simulations (lax.map)
+
+
+CHUNK_SETTINGS = 8  # (h, delays) settings per compiled chunk by default (cache-sized)
+
+
+def grid_values(x, name: str) -> list:
+    vals = [x] if np.isscalar(x) else list(x)
+    if not vals:
+        raise ValueError(f"search(): the {name} grid is empty")
+    return vals
+
+
+def structures(n_grid, m_grid, K: int) -> list[tuple[int, tuple[int, ...]]]:
+    out = []
+    for n in sorted(set(int(v) for v in n_grid)):
+        if n < 1:
+            raise ValueError(f"search(): orders n must be >= 1 (got {n})")
+        per_input = []
+        for k in range(K):
+            allowed = sorted(set(int(v) for v in m_grid[k])) if m_grid is not None else range(n)
+            per_input.append([mk for mk in allowed if 0 <= mk <= n])
+        for m in itertools.product(*per_input):
+            out.append((n, tuple(m)))
+    return out
+
+
+class ChunkStatic(eqx.Module):
+    """Everything that fixes shapes and control flow of the compiled chunk."""
+
+    n_max: int = eqx.field(static=True)
+    m_max: tuple[int, ...] = eqx.field(static=True)
+    ft_inputs: tuple[int, ...] = eqx.field(static=True)  # inputs that may have m_k = n
+    length: int = eqx.field(static=True)  # kernel length
+    degree: int = eqx.field(static=True)  # Legendre degree = max N + M
+    sources: tuple = eqx.field(static=True)  # (kind, k, rule) of every moment source
+    col_deriv: tuple[int, ...] = eqx.field(static=True)  # derivative order of every column
+    col_source: tuple[int, ...] = eqx.field(static=True)  # source of each of the first p columns
+    classes: tuple = eqx.field(static=True)  # `OrderClass` of every model order
+    devices: int = eqx.field(static=True)  # devices the (h, delays) axis is sharded over
+    v_start: int = eqx.field(static=True)
+    v_length: int = eqx.field(static=True)
+    ob_length: int = eqx.field(static=True)
+    simulate: bool = eqx.field(static=True)
+    batch: int = eqx.field(static=True)  # candidates per vmapped validation batch
+
+
+class OrderClass(NamedTuple):
+    """The candidates of one model order n: every (N, M) with N, M >= n x every structure of
+    order n, solved in a compact layout (only the columns order n can use: a_0..a_n, b_k up to
+    the class's largest m_k, offset) that `sel` picks from the padded one."""
+
+    n: int
+    sel: tuple[int, ...]  # compact column -> padded column
+    sel_ext: tuple[int, ...]  # the same for the extended Gram (feed-through columns appended)
+    m: tuple[int, ...]  # largest m_k of the class
+    nm: tuple[int, ...]  # its (N, M) pairs (indices)
+    structs: tuple[int, ...]  # its structures (indices)
+
+
+def device_mesh():
+    devices = jax.devices()
+    return jax.make_mesh((len(devices),), ("c",), axis_types=(jax.sharding.AxisType.Auto,))
+
+
+class Plan(NamedTuple):
+    """A checked grid, compiled once: everything but the data (`search` = `run_plan(plan_search(..))`)."""
+
+    static: ChunkStatic
+    eta: jax.Array
+    structs: list
+    struct_arr: dict
+    nm: dict
+    hd: list
+    combos: list
+    columns: tuple[np.ndarray, np.ndarray]  # (N, M) pair and structure of each group column
+    chunk: int
+    sharding: jax.sharding.NamedSharding
+    score: str
+    n_samples: int
+    n_inputs: int
+
+
+def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
+          chunk_size, simulate, span_bound: float = 0.0) -> Plan:
+    """Check the grid against the record's shape and build the static parts of `search`.
+
+    `span_bound` (time units) pads the kernels to at least this h + delay, so that plans with
+    different delays share one compilation (the on-line identifier)."""
+    if not isinstance(signals, Signals):
+        raise TypeError("search(): signals must be a Signals")
+    if score not in SCORES:
+        raise ValueError(f"search(): unknown score {score!r}; use one of {SCORES}")
+    if not (isinstance(chunk_size, (int, np.integer)) and chunk_size >= 1):
+        raise ValueError(f"search(): chunk_size must be an integer >= 1 (got {chunk_size!r})")
+    if not simulate and score != "J":
+        raise ValueError(f"search(): score {score!r} needs simulate=True (or use score='J')")
+    K = signals.n_inputs
+    n_grid = grid_values(n, "n")
+    N_grid = [float(v) for v in grid_values(N, "N")]
+    M_grid = [float(v) for v in grid_values(M, "M")]
+    h_grid = [float(v) for v in grid_values(h, "h")]
+    if m is not None:
+        m = [grid_values(mk, f"m[{k}]") for k, mk in enumerate(m)]
+        if len(m) != K:
+            raise ValueError(f"search(): m needs one list of orders per input ({K}), got {len(m)}")
+    if delays is not None:
+        delays = [[float(d) for d in grid_values(dk, f"delays[{k}]")] for k, dk in enumerate(delays)]
+        if len(delays) != K:
+            raise ValueError(f"search(): delays needs one list per input ({K}), got {len(delays)}")
+    else:
+        delays = [[float(v)] for v in np.asarray(signals.delays)]
+    for name, vals in (("N", N_grid), ("M", M_grid), ("h", h_grid)):
+        if any(not math.isfinite(v) or v <= 0 for v in vals):
+            raise ValueError(f"search(): {name} values must be finite and > 0 (got {vals})")
+    if any(d < 0 or d >= signals.duration for dk in delays for d in dk):
+        raise ValueError("search(): delays must be >= 0 and shorter than the record")
+    structs = structures(n_grid, m, K)
+    if not structs:
+        raise ValueError("search(): no structure in the grid (check n and m)")
+    n_max = max(s[0] for s in structs)
+    m_max = tuple(max(s[1][k] for s in structs) for k in range(K))
+    ft_inputs = tuple(
+        k for k in range(K)
+        if any(s[1][k] == s[0] for s in structs) and not signals.smooth[k]
+        and signals.output_rule == "cubic"
+    )
+    if any(v != int(v) for v in N_grid + M_grid):
+        raise ValueError("search(): N and M must be integers (the moment basis is polynomial)")
+    if max(N_grid) + max(M_grid) > MAX_DEGREE:
+        raise ValueError(f"search(): N + M must be <= {MAX_DEGREE}")
+    if min(N_grid) < 1 or min(M_grid) < 1:
+        raise ValueError("search(): N and M must be >= 1")
+    n_of = np.asarray([st[0] for st in structs])
+    nm_pairs = [(a, b) for a in N_grid for b in M_grid if min(a, b) >= n_of.min()]
+    if not nm_pairs:
+        raise ValueError("search(): every candidate has N < n or M < n; widen N, M or lower n")
+    hd = list(itertools.product(h_grid, itertools.product(*delays)))
+    combos = [(a, b, hv, dv) for hv, dv in hd for a, b in nm_pairs]  # index g * NM + nm
+    h_max = max(h_grid)
+    delay_max = max((max(dk) for dk in delays), default=0.0)
+    dt = signals.dt
+    first = int(support_samples(h_max + delay_max, dt))
+    p_needed = n_max + 1 + sum(mk + 1 for mk in m_max) + int(signals.offset)
+    if signals.n_samples - first < max(MIN_VALID, 2 * p_needed):
+        raise ValueError(
+            f"search(): h={h_max:g} (+ delays {delay_max:g}) leaves too few valid samples in "
+            f"the record ({signals.duration:g} time units); use smaller h"
+        )
+    v0, v_len, ob = validation_window(signals, validate, observer_window, n_max, "search")
+    p = p_needed
+    eta = jnp.ones(p) if eta is None else jnp.asarray(eta, dtype=jnp.float64)
+    if eta.shape != (p,):
+        raise ValueError(f"search(): eta must have {p} entries (padded layout)")
+    # moment sources and the Legendre coefficients of every column for every (N, M)
+    sources = [("y", -1, signals.output_rule)]
+    sources += [("u", k, "cubic" if signals.smooth[k] else signals.intersample[k])
+                for k in range(K)]
+    if signals.offset:
+        sources.append(("one", -1, "zoh"))
+    sources += [("v", k, "cubic") for k in ft_inputs]
+    cols = [(0, None, i, 1.0) for i in range(n_max + 1)]  # (source, minus source, i, sign)
+    cols += [(1 + k, None, j, -1.0) for k in range(K) for j in range(m_max[k] + 1)]
+    if signals.offset:
+        cols.append((1 + K, None, 0, -1.0))
+    n_fixed = 1 + K + int(signals.offset)
+    cols += [(n_fixed + q, 1 + k, i, 1.0) for q, k in enumerate(ft_inputs)
+             for i in range(n_max + 1)]
+    degree = int(max(a + b for a, b in nm_pairs))
+    coef = np.zeros((len(nm_pairs), len(cols), len(sources), degree + 1))
+    pair_N, pair_M = [a for a, _ in nm_pairs], [b for _, b in nm_pairs]
+    by_deriv = {i: _coefficients(tuple(pair_N), tuple(pair_M), i, degree) for i in {c[2] for c in cols}}
+    for j, (src, minus, i, sign) in enumerate(cols):
+        coef[:, j, src] += sign * by_deriv[i]
+        if minus is not None:
+            coef[:, j, minus] -= sign * by_deriv[i]
+    nm = {"N": jnp.asarray([a for a, _ in nm_pairs]), "M": jnp.asarray([b for _, b in nm_pairs]),
+          "coef": jnp.asarray(coef)}
+    classes, struct_arr = [], []
+    pad_off = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])
+    for n_c in sorted({st[0] for st in structs}):
+        members = [j for j, st in enumerate(structs) if st[0] == n_c]
+        pairs = [r for r, (a, b) in enumerate(nm_pairs) if min(a, b) >= n_c]
+        if not pairs:
+            continue
+        m_c = tuple(max(structs[j][1][k] for j in members) for k in range(K))
+        sel = list(range(n_c + 1))
+        for k in range(K):
+            sel += [int(pad_off[k]) + i for i in range(m_c[k] + 1)]
+        sel += [p - 1] if signals.offset else []
+        sel_ext = sel + [p + q * (n_max + 1) + i for q in range(len(ft_inputs)) for i in range(n_c + 1)]
+        classes.append(OrderClass(n_c, tuple(sel), tuple(sel_ext), m_c, tuple(pairs), tuple(members)))
+        struct_arr.append({
+            "n": jnp.full(len(members), n_c, dtype=jnp.int32),
+            "mask": jnp.asarray([_mask(structs[j], n_c, m_c, signals.offset) for j in members]),
+            "ft": jnp.asarray([[structs[j][1][k] == n_c for k in range(K)]
+                               for j in members]).reshape(len(members), K),
+            "k": jnp.asarray([n_c + sum(mk + 1 for mk in structs[j][1]) + int(signals.offset)
+                              for j in members], dtype=jnp.float64),
+        })
+    static = ChunkStatic(
+        n_max, m_max, ft_inputs, kernel_length(max(h_max + delay_max, span_bound), dt), degree,
+        tuple(sources), tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]), tuple(classes),
+        len(jax.devices()), v0, v_len, ob, bool(simulate), VALIDATION_BATCH,
+    )
+    mesh = device_mesh()
+    n_dev = mesh.devices.size
+    chunk = n_dev * math.ceil(min(chunk_size, len(hd)) / n_dev)  # no padding beyond the grid
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("c"))
+    col_nm = np.concatenate([np.repeat(c.nm, len(c.structs)) for c in classes])
+    col_struct = np.concatenate([np.tile(c.structs, len(c.nm)) for c in classes])
+    return Plan(static, eta, structs, tuple(struct_arr), nm, hd, combos, (col_nm, col_struct),
+                 chunk, sharding, score, signals.n_samples, K)
+
+
+@functools.lru_cache(maxsize=128)
+def _coefficients(pair_N: tuple, pair_M: tuple, i: int, degree: int) -> np.ndarray:
+    """`legendre_coefficients` of every (N, M) pair, memoised: constants of a grid."""
+    out = legendre_coefficients(pair_N, pair_M, i, degree)
+    out.setflags(write=False)
+    return out
+
+
+def _mask(s, n_max, m_max, offset):
+    n, m = s
+    mask = [i <= n for i in range(n_max + 1)]
+    for k, mk in enumerate(m_max):
+        mask += [j <= m[k] for j in range(mk + 1)]
+    return mask + ([True] if offset else [])

@@ -1,0 +1,70 @@
+"""Sliding Legendre moments of the signals and their Gram (one per (h, delays) setting)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from .._quadrature import (
+    delayed_samples,
+    gregory_weights,
+    legendre_weights,
+    support_samples,
+)
+from .._signals import Signals
+from ._grid import ChunkStatic
+
+
+def _fft_size(n: int) -> int:
+    """Smallest 2^a 3^b 5^c >= n (sizes the FFT library handles fastest)."""
+    best = 1 << (n - 1).bit_length()
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            p235 = p35 * (1 << max(0, (-(-n // p35) - 1).bit_length()))
+            best = min(best, p235)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
+def _fft_modulate(x, W):
+    """Sliding convolutions of every x[s] (S, T) with every row of W[s] (S, Q, L), by real FFT:
+    (T, S * Q).
+
+    The FFT is circular of size >= max(T, L): row t is exact wherever the kernel's support
+    reaches no further back than sample 0, which holds for every sample the Gram weighs
+    (`gregory_weights` is 0 before the support)."""
+    T, L = x.shape[1], W.shape[2]
+    nfft = _fft_size(max(T, L))
+    X = jnp.fft.rfft(x, nfft, axis=1)
+    conv = jnp.fft.irfft(X[:, None, :] * jnp.fft.rfft(W, nfft, axis=2), nfft, axis=2)[:, :, :T]
+    return conv.reshape(-1, T).T
+
+
+def moment_gram(sig: Signals, static: ChunkStatic, h, delays):
+    r"""Sliding Legendre moments of every source and their Gram $H$ (one per (h, delays)).
+
+    Every column of $c(t)$ for every (N, M) is $\sum_q c_q\,\text{moment}_q$ of one source,
+    so $G_{N,M} = C_{N,M} H C_{N,M}^T$ (module docstring)."""
+    dt, T = sig.dt, sig.n_samples
+    signals, weights = [], []
+    for kind, k, rule in static.sources:
+        if kind == "y":
+            x, tau = sig.y, jnp.asarray(0.0)
+        elif kind == "u":
+            x, tau = sig.u[:, k], delays[k]
+        elif kind == "v":  # what D_k u_k(t - tau_k) puts into the output samples (m_k = n)
+            x, tau = delayed_samples(sig.u[:, k], delays[k], dt, sig.intersample[k]), 0.0
+        else:
+            x, tau = jnp.ones(T), jnp.asarray(0.0)
+        weights.append(legendre_weights(static.degree, h, dt, rule, tau, static.length))
+        signals.append(x)
+    x, W = jnp.stack(signals), jnp.stack(weights)
+    Mom = _fft_modulate(x, W)  # (T, sources * Q)
+    span = h + (jnp.max(delays) if delays.shape[0] else 0.0)
+    q = gregory_weights(T, support_samples(span, dt), dt)
+    Mq = jnp.sqrt(q)[:, None] * Mom  # q >= 0 (Gregory weights)
+    H = Mq.T @ Mq
+    scales = jnp.max(jnp.abs(x), axis=1)
+    return H, W, scales * jnp.sqrt(jnp.sum(q))

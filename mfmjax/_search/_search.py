@@ -1,0 +1,63 @@
+"""The public `search`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+from .._signals import Signals
+from ._engine import run_plan
+from ._grid import CHUNK_SETTINGS, plan_search
+from ._result import SearchResult
+
+
+def search(
+    signals: Signals,
+    *,
+    n: Sequence[int] | int = (1, 2, 3),
+    N: Sequence[float] | float = (3, 4, 5),
+    M: Sequence[float] | float = (3, 4, 5),
+    h: Sequence[float] | float,
+    m: Sequence[Sequence[int]] | None = None,
+    delays: Sequence[Sequence[float]] | None = None,
+    score: str = "E",
+    validate: tuple[float, float] | None = None,
+    observer_window: float | None = None,
+    eta=None,
+    chunk_size: int = CHUNK_SETTINGS,
+    simulate: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+) -> SearchResult:
+    r"""Identify and score every feasible candidate of a grid, batched (see module docstring).
+
+    **Arguments:**
+
+    - `signals`: the experiment. Its own `delays` are ignored when `delays` is given.
+    - `n`: output orders; `m`: per input, the allowed numerator orders (default: 0..n-1 for
+      each n; values above n are skipped); `N`, `M`, `h`: modulating function settings;
+      `delays`: per input, the delays to try. Candidates with N < n or M < n are skipped.
+    - `score`: ranking key, one of `"E"` (eq. 17 on the validation window), `"J"` (scale-free
+      equation error J_rel), `"fit"` (NRMSE %), `"aic"`, `"bic"` ($N_v \ln(E/T_v) + 2k$ and
+      $+ k \ln N_v$, k = number of free parameters). Flagged candidates rank after the others;
+      ties (for E: differences below 1e-12 of $\int y^2$; for J: below $\sqrt{p\,\epsilon}$,
+      the rounding noise of $\theta^T G \theta$; both matter on noise-free data) go to the
+      candidate with fewer parameters.
+    - `validate`: (t0, t1) window for E and fit (default: the whole record); the state at its
+      start comes from the initial-state observer over `observer_window` (default: the window).
+    - `simulate`: False skips the observer + simulation (E, fit, AIC, BIC are NaN; only the
+      `"J"` score is available): the pure equation-error search.
+    - `chunk_size`: (h, delays) settings per compiled chunk (at most the grid's; rounded up to
+      a multiple of the device count), each with every (N, M) and structure: memory grows with
+      it, not with the grid; `progress(done, total)` is
+      called after each chunk with counts of (h, delays) settings.
+
+    **Returns:** a `SearchResult`.
+    """
+    from ._boundary import check_search
+
+    check_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score, validate=validate,
+                 observer_window=observer_window, eta=eta, chunk_size=chunk_size,
+                 simulate=simulate, progress=progress)
+    plan = plan_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score,
+                 validate=validate, observer_window=observer_window, eta=eta,
+                 chunk_size=chunk_size, simulate=simulate)
+    return run_plan(plan, signals, progress)

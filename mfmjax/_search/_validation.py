@@ -1,0 +1,44 @@
+"""E (eq. 17), fit and information criteria of one candidate through a zero-padded realisation."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from .._linalg import hurwitz
+from .._observers import fit_percent, observe_forced
+from .._signals import Signals
+from .._simulate import forced_terms
+from .._statespace import realisation
+from .._status import Status
+from ._grid import ChunkStatic
+
+
+def padded_forced(sig: Signals, c):
+    """Zero-padded realisation (eq. 18) of candidate `c` (keys a, b, offset, n, delays) and its
+    exact forced response to `sig`'s inputs: ((ss, drive, direct), live-state mask)."""
+    K, n_max = sig.n_inputs, c["a"].shape[0] - 1
+    bs, modes, dl, u_cols = [c["b"][k] for k in range(K)], list(sig.intersample), [
+        c["delays"][k] for k in range(K)], [sig.u[:, k] for k in range(K)]
+    if sig.offset:
+        bs.append(jnp.zeros(n_max + 1).at[0].set(c["offset"]))
+        modes.append("zoh")
+        dl.append(jnp.asarray(0.0))
+        u_cols.append(jnp.ones(sig.n_samples))
+    ss, live = realisation(c["a"], bs, c["n"])
+    drive, direct = forced_terms(ss, u_cols, modes, dl, sig.dt, sig.n_samples)
+    return (ss, drive, direct), live
+
+
+def validate_candidate(sig: Signals, static: ChunkStatic, c):
+    """E (eq. 17), fit and information criteria of one candidate on the validation window, the
+    simulation started from the initial-state observer (eq. 14) of a zero-padded realisation."""
+    forced, live = padded_forced(sig, c)
+    obs = observe_forced(forced, sig.y, sig.dt, static.v_start, static.v_length,
+                          static.ob_length, live)
+    status = obs.status | jnp.where(hurwitz(c["a"]), 0, Status.UNSTABLE)
+    yv = jax.lax.dynamic_slice_in_dim(sig.y, static.v_start, static.v_length)
+    Nv = static.v_length
+    loglik = Nv * jnp.log(jnp.maximum(obs.E / (Nv * sig.dt), 1e-300))
+    return dict(E=obs.E, fit=fit_percent(yv, obs.y_sim), aic=loglik + 2 * c["k"],
+                bic=loglik + c["k"] * jnp.log(Nv), status=status)
