@@ -1,9 +1,16 @@
-"""Command line: `mfmjax identify|demo ...`. User errors print one line and exit with code 2."""
+"""Command line: `mfmjax identify|search|validate|online|dataset|demo ...`.
+
+A user error (a bad option, file or value) prints one line on stderr and exits with code 2; an
+unexpected internal error prints one line with a bug-report hint and exits with code 1. No
+traceback reaches the user in either case (set MFMJAX_TRACEBACK=1 to see it for a bug report).
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
 import warnings
 
@@ -21,9 +28,63 @@ class _Parser(argparse.ArgumentParser):
 
 def _floats(text: str, name: str) -> list[float]:
     try:
-        return [float(v) for v in text.split(",") if v.strip() != ""]
+        vals = [float(v) for v in text.split(",") if v.strip() != ""]
     except ValueError:
         raise _UserError(f"--{name}: expected comma-separated numbers, got {text!r}") from None
+    bad = [v for v in vals if not math.isfinite(v)]
+    if bad:
+        raise _UserError(f"--{name}: {bad[0]:g} is not a finite number (got {text!r})")
+    return vals
+
+
+def _number(name: str, *, lo: float | None = None, lo_open: bool = False, integer: bool = False):
+    """An argparse `type=`: a finite number (a whole one when `integer`) >= lo (> lo)."""
+    bound = "" if lo is None else f" {'>' if lo_open else '>='} {lo:g}"
+    what = f"{'an integer' if integer else 'a finite number'}{bound}"
+
+    def convert(text: str):
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        ok = math.isfinite(v) and (not integer or v == int(v))
+        if ok and lo is not None:
+            ok = v > lo if lo_open else v >= lo
+        if not ok:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return int(v) if integer else v
+
+    convert.__name__ = name  # argparse names the type in its own messages
+    return convert
+
+
+def _window(text: str, name: str) -> tuple[float, float]:
+    """T0,T1: two finite times with T0 < T1."""
+    vals = _floats(text, name)
+    if len(vals) != 2:
+        raise _UserError(f"--{name}: expected T0,T1 (two numbers), got {text!r}")
+    if not vals[0] < vals[1]:
+        raise _UserError(f"--{name}: T0 must be below T1 (got {text!r})")
+    return vals[0], vals[1]
+
+
+def _json_safe(x):
+    """Strict JSON: NaN / inf as null (the text output says what they meant)."""
+    if isinstance(x, dict):
+        return {str(k): _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _json_safe(x.tolist())
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def _print_json(obj) -> None:
+    print(json.dumps(_json_safe(obj), allow_nan=False))
 
 
 def _ints(text: str, name: str) -> list[int]:
@@ -39,7 +100,8 @@ def _add_data_args(p: argparse.ArgumentParser):
     p.add_argument("--inputs", default="", help="input column names, comma separated")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--time", help="time column name (uniform sampling)")
-    g.add_argument("--dt", type=float, help="sampling interval (when there is no time column)")
+    g.add_argument("--dt", type=_number("dt", lo=0, lo_open=True),
+                   help="sampling interval (when there is no time column)")
     p.add_argument("--intersample", help="per input: zoh or foh (default foh)")
     p.add_argument("--delays", help="per input transport delay in time units "
                    "(search: one grid per input separated by ';')")
@@ -47,10 +109,26 @@ def _add_data_args(p: argparse.ArgumentParser):
     p.add_argument("--names", help="column names for a file without header (comma separated)")
 
 
+def _columns(args) -> list[str]:
+    """The input column names; refuses an input that is the output, the time or a repeat."""
+    inputs = [c.strip() for c in args.inputs.split(",") if c.strip()]
+    for c in inputs:
+        if c == args.output:
+            raise _UserError(f"--inputs: {c!r} is also the output (--output {args.output}); an "
+                             "output given as an input makes the model degenerate: drop it")
+        if c == args.time:
+            raise _UserError(f"--inputs: {c!r} is also the time column (--time {args.time})")
+        if inputs.count(c) > 1:
+            raise _UserError(f"--inputs: {c!r} is given twice; list each input once")
+    if args.time is not None and args.time == args.output:
+        raise _UserError(f"--time: {args.time!r} is also the output (--output {args.output})")
+    return inputs
+
+
 def _load_signals(args):
     from ._signals import Signals
 
-    inputs = [c.strip() for c in args.inputs.split(",") if c.strip()]
+    inputs = _columns(args)
     kwargs = {}
     if args.intersample:
         kwargs["intersample"] = [s.strip() for s in args.intersample.split(",")]
@@ -89,7 +167,7 @@ def _cmd_identify(args):
         out = model.to_dict()
         if report:
             out["refined"] = {k: v for k, v in report.items() if k != "model"}
-        print(json.dumps(out))
+        _print_json(out)
     else:
         print(f"{args.file}: {sig.n_samples} samples, dt={sig.dt:g}, K={sig.n_inputs}")
         print(model.summary())
@@ -132,29 +210,41 @@ def _print_report(rep: dict) -> None:
 def _cmd_demo(args):
     from ._demo import demo
 
-    if args.horizon is not None and args.horizon < 2500:
-        raise _UserError("--horizon: at least 2500 s (the first model needs 8 intervals)")
     demo(args.out, args.horizon)
 
 
+def _toml_settings(args) -> dict:
+    """The settings of --config (a table [online] or top-level keys), finite numbers only."""
+    if not args.config:
+        return {}
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        import tomli as tomllib
+
+    try:
+        with open(args.config, "rb") as fh:
+            doc = tomllib.load(fh)
+    except OSError as err:
+        raise _UserError(f"--config: cannot read {args.config}: {err.strerror}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise _UserError(f"--config: {args.config} is not valid TOML ({err})") from None
+    doc = doc.get("online", doc)
+    if not isinstance(doc, dict):
+        raise _UserError(f"--config: [online] in {args.config} must be a table of settings")
+    for key, val in doc.items():
+        for v in val if isinstance(val, list) else [val]:
+            if isinstance(v, float) and not math.isfinite(v):
+                raise _UserError(f"--config: {key} = {val} in {args.config}: every number must "
+                                 "be finite")
+    return dict(doc)
+
+
 def _online_config(args, K: int, dt: float, names):
+    """(OnlineConfig from --config, --delays, --intersample, the keys given explicitly)."""
     from ._online import OnlineConfig
 
-    kwargs = {}
-    if args.config:
-        try:
-            import tomllib
-        except ImportError:  # Python 3.10
-            import tomli as tomllib
-
-        try:
-            with open(args.config, "rb") as fh:
-                kwargs = tomllib.load(fh)
-        except OSError as err:
-            raise _UserError(f"--config: cannot read {args.config}: {err.strerror}") from None
-        except tomllib.TOMLDecodeError as err:
-            raise _UserError(f"--config: {args.config} is not valid TOML ({err})") from None
-        kwargs = kwargs.get("online", kwargs)
+    kwargs = _toml_settings(args)
     if args.delays:
         kwargs["delays"] = _floats(args.delays, "delays")
     if args.intersample:
@@ -163,19 +253,59 @@ def _online_config(args, K: int, dt: float, names):
     bad = sorted(set(kwargs) - known)
     if bad:
         raise _UserError(f"--config: unknown setting(s) {bad}; known: {sorted(known)}")
+    given = sorted(kwargs)
     kwargs.setdefault("input_names", names[1])
     kwargs.setdefault("output_name", names[0])
-    return OnlineConfig(dt=dt, n_inputs=K, **kwargs)
+    try:
+        config = OnlineConfig(dt=dt, n_inputs=K, **kwargs)
+    except (OverflowError, ZeroDivisionError) as err:  # arithmetic on an extreme value
+        raise _UserError(f"--config: a setting is out of range ({err})") from None
+    _check_memory(config)
+    return config, given
+
+
+# Measured (benchmarks: peak RSS of the on-line identifier at T = 250, 2,500 and 25,000 samples
+# per interval): the identification work peaks at about this many times the ring buffer.
+_WORK_PER_BUFFER = 40
+
+
+def _available_memory() -> int | None:
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _check_memory(config) -> None:
+    """Refuse a configuration whose buffers cannot fit in memory, before allocating anything:
+    the ring buffer holds `config.buffer` samples of the output and K inputs (8 bytes each), and
+    identification needs about `_WORK_PER_BUFFER` times that; refused above the memory
+    available now (MemAvailable), or above 2**31 buffered samples when that is unknown."""
+    samples = config.buffer
+    need = samples * (config.n_inputs + 1) * 8 * _WORK_PER_BUFFER
+    avail = _available_memory()
+    if (avail is not None and need > avail) or samples > 2**31:
+        have = "unknown" if avail is None else f"{avail / 2**30:.1f} GiB"
+        raise _UserError(
+            f"--config: interval = {config.interval:g} (dt = {config.dt:g}) needs a buffer of "
+            f"{samples:,} samples and about {need / 2**30:.3g} GiB of memory (available: "
+            f"{have}); use a shorter interval or a coarser dt"
+        )
 
 
 def _cmd_online(args):
-    import os
-
-    from ._online import OnlineIdentifier, model_table
+    from ._online import OnlineIdentifier, _load, model_table, save
     from ._signals import read_csv
 
     cols = read_csv(args.file, [c.strip() for c in args.names.split(",")] if args.names else None)
-    inputs = [c.strip() for c in args.inputs.split(",") if c.strip()]
+    inputs = _columns(args)
     for c in [args.output, *inputs] + ([args.time] if args.time else []):
         if c not in cols:
             raise _UserError(f"{args.file}: no column {c!r}; columns are {sorted(cols)}")
@@ -185,44 +315,103 @@ def _cmd_online(args):
     u = np.column_stack([cols[c] for c in inputs])
     if args.time:
         t = cols[args.time]
+        if not np.all(np.isfinite(t)):
+            raise _UserError(f"--time: column {args.time!r} has a NaN or inf time")
         dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
     elif args.dt:
         dt = args.dt
         t = np.arange(y.size) * dt
     else:
         raise _UserError("give --time COLUMN or --dt SECONDS")
+    before = {"sse": 0.0, "count": 0, "intervals": 0}
+    resumed = partial = False
     if args.checkpoint and os.path.exists(args.checkpoint):
-        ident = OnlineIdentifier.load(args.checkpoint)
-        st = ident.state
-        if ident.state.config.n_inputs != u.shape[1]:
-            raise _UserError("--checkpoint: it was written for a different number of inputs")
-        done = float(st.t0) + (int(st.n_seen) - 0.5) * st.config.dt
+        state, extra = _load(args.checkpoint)
+        _check_resume(args, state.config, u.shape[1], dt, (args.output, inputs))
+        ident = OnlineIdentifier(state=state)
+        ident.models = list(extra.get("models", []))
+        resumed = "prediction" in extra  # written by this command: it holds the errors so far
+        partial = not resumed and int(state.n_closed) > 0  # written by OnlineIdentifier.save
+        if resumed:
+            before = {k: extra["prediction"][k] for k in before}
+        done = float(state.t0) + (int(state.n_seen) - 0.5) * state.config.dt
         keep = t > done  # continue after the samples the checkpoint has seen
         t, y, u = t[keep], y[keep], u[keep]
     else:
-        ident = OnlineIdentifier(_online_config(args, u.shape[1], dt, (args.output, inputs)))
+        config, _ = _online_config(args, u.shape[1], dt, (args.output, inputs))
+        ident = OnlineIdentifier(config)
     chunk = max(ident.state.config.samples, 1)
     progress = _Progress("online") if not args.json else None
     for c0 in range(0, t.size, chunk):
         ident.update(t[c0 : c0 + chunk], y[c0 : c0 + chunk], u[c0 : c0 + chunk])
         if progress is not None:
             progress(min(c0 + chunk, t.size), t.size)
-    if args.checkpoint:
-        ident.save(args.checkpoint)
-    mse = ident.mse()
-    res = {"mse": mse if np.isfinite(mse) else None, "models": ident.models,
+    s = ident.series()
+    ok = np.isfinite(s["y_pred"]) & np.isfinite(s["y"])
+    run = {"sse": float(np.sum((s["y"][ok] - s["y_pred"][ok]) ** 2)), "count": int(ok.sum()),
            "intervals": len(ident.events)}
+    total = {k: before[k] + run[k] for k in run}
+    if args.checkpoint:
+        save(args.checkpoint, ident.state, extra={"models": ident.models, "prediction": total})
+    mse = total["sse"] / total["count"] if total["count"] else math.nan
+    mse_run = run["sse"] / run["count"] if run["count"] else math.nan
+    if resumed:
+        scope = (f"the whole run: {before['intervals']} intervals before the checkpoint and "
+                 f"{run['intervals']} in this call")
+    elif partial:
+        scope = (f"the {run['intervals']} intervals of this call only (the checkpoint holds no "
+                 "earlier prediction errors)")
+    else:
+        scope = f"{run['intervals']} intervals"
+    res = {"mse": mse, "mse_scope": scope, "mse_this_call": mse_run, "models": ident.models,
+           "intervals": total["intervals"]}
+    if not total["count"]:
+        res["mse_note"] = "no prediction yet: the first model needs n_start intervals"
     if args.plot:
         from ._plotting import plot_online
 
-        plot_online(ident.series(), ident.models, args.plot, ylabel=args.output,
-                    title=f"on-line prediction, MSE {mse:.4g}")
+        plot_online(s, ident.models, args.plot, ylabel=args.output,
+                    title=f"on-line prediction, MSE {mse_run:.4g}")
         res["plot"] = args.plot
     if args.json:
-        print(json.dumps(res))
+        _print_json(res)
     else:
         print(model_table(ident.models, end=ident._end()))
-        print(f"\nmean square prediction error: {mse:.6g} over {len(ident.events)} intervals")
+        shown = "undefined (no prediction yet)" if not total["count"] else f"{mse:.6g}"
+        print(f"\nmean square prediction error: {shown} over {scope}")
+
+
+def _check_resume(args, config, K: int, dt: float, names) -> None:
+    """Refuse a command line that contradicts the checkpoint it resumes (naming both)."""
+    ck = args.checkpoint
+    if config.n_inputs != K:
+        raise _UserError(f"--checkpoint: {ck} was written for {config.n_inputs} input(s), "
+                         f"--inputs gives {K}")
+    if abs(config.dt - dt) > 1e-9 * config.dt:
+        raise _UserError(f"--checkpoint: {ck} was written for dt={config.dt:g}, the data has "
+                         f"dt={dt:g}")
+    if (config.output_name, tuple(config.input_names)) != (names[0], tuple(names[1])):
+        raise _UserError(
+            f"--checkpoint: {ck} was written for output {config.output_name!r} and inputs "
+            f"{list(config.input_names)}, the command line gives {names[0]!r} and {names[1]}"
+        )
+    if not (args.config or args.delays or args.intersample):
+        return
+    new, given = _online_config(args, K, config.dt, names)
+    for key in given:
+        old, now = getattr(config, key), getattr(new, key)
+        if old != now:
+            opt = f"--{key}" if key in ("delays", "intersample") else f"--config {key}"
+            raise _UserError(
+                f"--checkpoint: {ck} was written with {key}={_show(old)}, {opt} gives "
+                f"{key}={_show(now)}; drop {opt} to resume, or start a new checkpoint file"
+            )
+
+
+def _show(v) -> str:
+    if isinstance(v, tuple):
+        return ",".join(_show(x) for x in v)
+    return f"{v:g}" if isinstance(v, float) else str(v)
 
 
 def _cmd_dataset(args):
@@ -313,10 +502,7 @@ def _cmd_search(args):
     if grid_delays:
         kwargs["delays"] = _per_input_grid(grid_delays, "delays", K, False)
     if args.validate:
-        window = _floats(args.validate, "validate")
-        if len(window) != 2:
-            raise _UserError("--validate: expected T0,T1")
-        kwargs["validate"] = tuple(window)
+        kwargs["validate"] = _window(args.validate, "validate")
     result = mfmjax.search(sig, progress=_Progress("search"), **kwargs)
     report = None
     if args.refine:
@@ -331,7 +517,7 @@ def _cmd_search(args):
         out = result.to_dict(top=args.top)
         if report:
             out["refined"] = {k: v for k, v in report.items() if k != "model"}
-        print(json.dumps(out))
+        _print_json(out)
     else:
         print(f"{len(result)} candidates, ranked by {args.score} "
               f"(compile {result.compile_s:.1f} s, run {result.run_s:.1f} s)")
@@ -351,25 +537,27 @@ def _cmd_validate(args):
 
     model = mfmjax.load_model(args.model)
     sig = _load_signals(args)
-    window = tuple(_floats(args.window, "window")) if args.window else None
-    if window is not None and len(window) != 2:
-        raise _UserError("--window: expected T0,T1")
+    window = _window(args.window, "window") if args.window else None
     obs = mfmjax.observe(model, sig, window)
     k0 = 0 if window is None else round((window[0] - sig.t0) / sig.dt)
     y = np.asarray(sig.y)[k0 : k0 + obs.y_sim.shape[0]]
-    fit = float(mfmjax.fit_percent(y, obs.y_sim))
+    constant = bool(np.ptp(y) == 0)  # fit % divides by the output's variation about its mean
+    fit = None if constant else float(mfmjax.fit_percent(y, obs.y_sim))
     res = {"E": float(obs.E), "fit": fit, "x0": [float(v) for v in np.asarray(obs.x_initial)],
            "x_final": [float(v) for v in np.asarray(obs.x_final)],
            "window": [sig.t0 + k0 * sig.dt, sig.t0 + (k0 + len(y) - 1) * sig.dt]}
+    if constant:
+        res["fit_note"] = (f"undefined: the measured {sig.output_name} is constant on the "
+                           "window, and fit % is relative to its variation about the mean")
     if args.plot:
         _plot_validation(sig, k0, y, np.asarray(obs.y_sim), fit, args.plot)
         res["plot"] = args.plot
     if args.json:
-        print(json.dumps(res))
+        _print_json(res)
     else:
         print(f"window        {res['window'][0]:g} .. {res['window'][1]:g}")
         print(f"E (eq. 17)    {res['E']:.6e}")
-        print(f"fit           {fit:.2f} %")
+        print(f"fit           {res['fit_note'] if constant else f'{fit:.2f} %'}")
         print("x0            " + " ".join(f"{v:.6e}" for v in res["x0"]))
 
 
@@ -384,7 +572,8 @@ def _plot_validation(sig, k0, y, y_sim, fit, path):
     t = sig.t0 + sig.dt * (k0 + np.arange(len(y)))
     fig, ax = plt.subplots(figsize=(8, 3.5), dpi=100)
     ax.plot(t, y, lw=1.2, label=f"measured {sig.output_name}")
-    ax.plot(t, y_sim, lw=1.0, ls="--", label=f"simulated (fit {fit:.1f} %)")
+    label = "fit undefined" if fit is None else f"fit {fit:.1f} %"
+    ax.plot(t, y_sim, lw=1.0, ls="--", label=f"simulated ({label})")
     ax.set_xlabel("time")
     ax.set_ylabel(sig.output_name)
     ax.legend(loc="best")
@@ -395,14 +584,20 @@ def _plot_validation(sig, k0, y, y_sim, fit, path):
 
 def main(argv=None) -> int:
     parser = _Parser(prog="mfmjax", description="Modulating Function Method identification")
+    parser.add_argument("--no-compile-cache", action="store_true", help="do not use the "
+                        "persistent compilation cache (mfmjax.enable_compile_cache)")
     sub = parser.add_subparsers(dest="command", parser_class=_Parser)
     p = sub.add_parser("identify", help="identify one model from a CSV record")
     _add_data_args(p)
-    p.add_argument("--n", type=int, required=True, help="output order n")
+    p.add_argument("--n", type=_number("n", lo=1, integer=True), required=True,
+                   help="output order n")
     p.add_argument("--m", help="numerator orders per input, comma separated (default 0)")
-    p.add_argument("--N", type=float, required=True, help="modulating function exponent N")
-    p.add_argument("--M", type=float, required=True, help="modulating function exponent M")
-    p.add_argument("--h", type=float, required=True, help="modulating function width h")
+    p.add_argument("--N", type=_number("N"), required=True,
+                   help="modulating function exponent N")
+    p.add_argument("--M", type=_number("M"), required=True,
+                   help="modulating function exponent M")
+    p.add_argument("--h", type=_number("h"), required=True,
+                   help="modulating function width h (time units)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--save", help="write the model to this JSON file")
     p.add_argument("--refine", action="store_true", help="refine h, N, M (and delays) by "
@@ -418,13 +613,14 @@ def main(argv=None) -> int:
     p.add_argument("--h", required=True, help="widths h, list a,b,c")
     p.add_argument("--score", default="E", choices=["E", "J", "fit", "aic", "bic"])
     p.add_argument("--validate", help="T0,T1 validation window (default: whole record)")
-    p.add_argument("--top", type=int, default=10, help="rows to print")
+    p.add_argument("--top", type=_number("top", lo=1, integer=True), default=10,
+                   help="rows to print")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--save", help="write the best model to this JSON file")
     p.add_argument("--refine", action="store_true", help="refine the best candidate's settings "
                    "by gradient, then its parameters by output error")
     p.set_defaults(func=_cmd_search)
-    p = sub.add_parser("validate", help="E, fit % and observed x0 of a saved model on a record")
+    p = sub.add_parser("validate", help="E, fit %% and observed x0 of a saved model on a record")
     _add_data_args(p)
     p.add_argument("--model", required=True, help="model JSON written by identify --save")
     p.add_argument("--window", help="T0,T1 (default: the whole record)")
@@ -441,17 +637,21 @@ def main(argv=None) -> int:
     p = sub.add_parser("dataset", help="write a built-in simulated dataset to CSV")
     p.add_argument("name", help="forehearth")
     p.add_argument("--experiment", type=int, default=1, choices=[1, 2])
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_number("seed", lo=0, integer=True), default=0)
     p.add_argument("--with-pull", action="store_true", help="add the (unmeasured) pull rate")
     p.add_argument("-o", required=True, help="CSV file to write")
     p.set_defaults(func=_cmd_dataset)
     p = sub.add_parser("demo", help="run the built-in demonstration")
     p.add_argument("--out", default="mfmjax-demo", help="directory for the PNGs and JSON "
                    "(default ./mfmjax-demo)")
-    p.add_argument("--horizon", type=float, help="stop each experiment after this many seconds")
+    p.add_argument("--horizon", type=_number("horizon", lo=2500),
+                   help="stop each experiment after this many seconds (>= 2500: the first "
+                   "model needs 8 intervals of 250 s)")
     p.set_defaults(func=_cmd_demo)
     try:
-        args = parser.parse_args(argv)
+        argv = list(sys.argv[1:] if argv is None else argv)
+        no_cache = "--no-compile-cache" in argv  # accepted before or after the command
+        args = parser.parse_args([a for a in argv if a != "--no-compile-cache"])
         if args.command is None:
             raise _UserError("mfmjax: give a command: identify, search, validate, online, "
                              "dataset, demo (see --help)")
@@ -459,12 +659,65 @@ def main(argv=None) -> int:
             val = getattr(args, name, None)
             if isinstance(val, float) and val == int(val):
                 setattr(args, name, int(val))
-        args.func(args)
+        if not no_cache:
+            from ._cache import enable_compile_cache
+
+            try:
+                enable_compile_cache()
+            except ValueError as err:  # an unwritable cache folder must not stop the command
+                print(f"warning: {err}", file=sys.stderr)
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning
+            _quiet_jax_callback_log()
+            args.func(args)
     except (_UserError, ValueError, TypeError, OSError) as err:
-        msg = str(err).splitlines()[0] if str(err) else type(err).__name__
-        print(f"error: {msg}", file=sys.stderr)
+        print(f"error: {_first_line(err)}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except MemoryError:
+        print("error: out of memory; use a shorter record, a smaller grid or a shorter "
+              "interval", file=sys.stderr)
+        return 2
+    except Exception as err:
+        if os.environ.get("MFMJAX_TRACEBACK"):
+            raise
+        data_error = _runtime_check_message(err)  # a value check inside jit (eqx.error_if)
+        if data_error is not None:
+            print(f"error: {data_error}", file=sys.stderr)
+            return 2
+        print(f"error: internal error ({type(err).__name__}: {_first_line(err)[:200]}); this "
+              "is a bug in mfmjax: please report it with the command line (run again with "
+              "MFMJAX_TRACEBACK=1 for the traceback)", file=sys.stderr)
+        return 1
     return 0
+
+
+def _first_line(err: BaseException) -> str:
+    lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+    return lines[0] if lines else type(err).__name__
+
+
+def _runtime_check_message(err: BaseException) -> str | None:
+    """The message of an `eqx.error_if` check that failed inside a jitted program, if any."""
+    import re
+
+    found = re.search(r"EquinoxRuntimeError: ([^\n]+)", str(err))
+    return found.group(1).strip() if found else None
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+    text = " ".join(str(message).split())
+    print(f"warning: {text}", file=sys.stderr)
+
+
+def _quiet_jax_callback_log() -> None:
+    """A failed value check inside jit logs its own traceback through this logger: the CLI
+    reports the check's message instead (one line)."""
+    import logging
+
+    logging.getLogger("jax._src.callback").setLevel(logging.CRITICAL)
 
 
 if __name__ == "__main__":  # pragma: no cover

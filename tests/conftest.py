@@ -13,6 +13,21 @@ SHARED = os.environ.get("MFMJAX_DATA") or os.path.join(os.path.dirname(__file__)
 import pytest  # noqa: E402
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _session_compile_cache(tmp_path_factory):
+    """One persistent compilation cache per test session, under the pytest tmp base: the run
+    starts cold, and every module after the first reads the programs earlier modules compiled
+    (the in-memory caches are still dropped per module, below). Exported through
+    JAX_COMPILATION_CACHE_DIR so subprocesses (CLI, notebooks) share it and the CLI's own
+    cache never writes to the user's folder during tests."""
+    from mfmjax import enable_compile_cache
+
+    path = enable_compile_cache(tmp_path_factory.getbasetemp() / "jax-compile-cache")
+    if path is not None:
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = path
+    yield path
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _fresh_jax_caches():
     """Drop compiled executables between test modules: the suite compiles hundreds of

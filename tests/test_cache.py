@@ -159,3 +159,24 @@ def test_prune_keeps_the_newest(tmp_path):
     (tmp_path / "other.txt").write_text("kept")
     _cache._prune(str(tmp_path), 250)  # room for two 100-byte entries: the newest two stay
     assert sorted(p.name for p in tmp_path.iterdir()) == ["k3-cache", "k4-cache", "other.txt"]
+
+
+def test_cli_uses_the_cache_unless_told_not_to(tmp_path):
+    t = np.arange(600) * 0.01
+    u = np.sin(0.9 * t) + 0.5 * np.cos(2.3 * t)
+    y = np.asarray(mfmjax.simulate(mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]]),
+                                   u, None, dt=0.01))
+    csv = tmp_path / "rec.csv"
+    np.savetxt(csv, np.column_stack([y, u]), delimiter=",", header="y,u", comments="")
+    cmd = [sys.executable, "-c", "import sys; from mfmjax._cli import main; sys.exit(main())",
+           "identify", str(csv), "--output", "y", "--inputs", "u", "--dt", "0.01", "--n", "2",
+           "--N", "4", "--M", "4", "--h", "2"]
+    base = {k: v for k, v in os.environ.items()
+            if k not in ("JAX_COMPILATION_CACHE_DIR", "MFMJAX_NO_COMPILE_CACHE")}
+    for flag, xdg in (([], "on"), (["--no-compile-cache"], "off")):
+        env = dict(base, XDG_CACHE_HOME=str(tmp_path / xdg))
+        proc = subprocess.run(cmd + flag, capture_output=True, text=True, env=env, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    (folder,) = (tmp_path / "on" / "mfmjax").iterdir()
+    assert any(p.name.endswith("-cache") for p in folder.iterdir())
+    assert not (tmp_path / "off").exists()
