@@ -264,9 +264,11 @@ def _online_config(args, K: int, dt: float, names):
     return config, given
 
 
-# Measured (benchmarks: peak RSS of the on-line identifier at T = 250, 2,500 and 25,000 samples
-# per interval): the identification work peaks at about this many times the ring buffer.
-_WORK_PER_BUFFER = 40
+# Measured: the on-line identifier's peak RSS (Table 1 settings scaled with T, n = 2, K = 2,
+# through the first identification) grew by 922 MB when T went from 2,500 to 25,000 samples
+# (ring buffer +180,000 samples x 3 signals x 8 bytes = 4.3 MB): about 213 times the buffer's
+# bytes, rounded up here. The fixed ~0.5 GB of compiled programs is not counted.
+_WORK_PER_BUFFER = 256
 
 
 def _available_memory() -> int | None:

@@ -7,6 +7,7 @@ paper's Tables 2-5 and the prediction MSE, writes Fig. 2-5-style PNGs and a JSON
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 import time
@@ -90,7 +91,8 @@ def demo(out: str = "mfmjax-demo", horizon: float | None = None) -> dict:
               f"{data['t'][-1]:.0f} s; input-1 delay {data['delay'].min():.0f}-"
               f"{data['delay'].max():.0f} s (identifier uses {r['delay']:.0f} s)")
         print(paper_tables(ident.models, end))
-        print(f"mean square prediction error: {mse:.4f} degC^2 (paper: {PAPER_MSE[ex]})\n")
+        shown = f"{mse:.4f} degC^2" if math.isfinite(mse) else "undefined (no prediction yet)"
+        print(f"mean square prediction error: {shown} (paper: {PAPER_MSE[ex]})\n")
         fig_in = os.path.join(out, f"experiment{ex}_inputs.png")
         fig_pred = os.path.join(out, f"experiment{ex}_prediction.png")
         plot_inputs(data["t"], data["u"], ["prev. zone [degC]", "pressure [mbar]"], fig_in,
@@ -100,15 +102,22 @@ def demo(out: str = "mfmjax-demo", horizon: float | None = None) -> dict:
                     title=f"Experiment {ex}: on-line prediction, MSE {mse:.3f} (cf. Fig. {2 * ex + 1})",
                     end=end)
         results["experiments"].append({
-            "experiment": ex, "mse": mse, "models": ident.models,
+            "experiment": ex, "mse": mse if math.isfinite(mse) else None, "models": ident.models,
             "intervals": ident.events, "delay_used": r["delay"],
             "delay_range": [float(data["delay"].min()), float(data["delay"].max())],
             "figures": [fig_in, fig_pred], "simulate_s": r["simulate_s"],
             "online_s": r["online_s"],
         })
+        if not math.isfinite(mse):  # strict JSON has no NaN: say why the value is missing
+            results["experiments"][-1]["mse_note"] = (
+                "null: no prediction yet (the first model is identified after n_start "
+                "intervals and predicts from the interval after it); use a longer horizon")
     path = os.path.join(out, "results.json")
-    with open(path, "w") as fh:
-        json.dump(results, fh, indent=1)
+    from ._online import _json_safe
+    from ._persist import atomic_write
+
+    text = json.dumps(_json_safe(results), indent=1, allow_nan=False) + "\n"
+    atomic_write(path, text.encode())
     print(f"wrote {out}/experiment{{1,2}}_inputs.png, experiment{{1,2}}_prediction.png, "
           "results.json")
     return results
