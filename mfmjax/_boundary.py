@@ -105,8 +105,8 @@ def values(fn: str, name: str, value, *, allow_empty: bool = False) -> list:
     else:
         out = [value]
     if not out and not allow_empty:
-        raise ValueError(f"{fn}(): {name} is empty (got {name}={_show(value)}); give at least "
-                         "one value")
+        raise ValueError(f"{fn}(): the {name} grid is empty (got {name}={_show(value)}); give "
+                         "at least one value")
     return out
 
 
@@ -142,7 +142,8 @@ def window(fn: str, name: str, value):
     return w0, w1
 
 
-def array(fn: str, name: str, value, *, ndim=None, finite: bool = True):
+def array(fn: str, name: str, value, *, ndim=None, finite: bool = True,
+          fix: str = "remove or interpolate non-finite samples first"):
     """A real array (not bool, str or complex) of `ndim` (int or tuple of allowed ndims).
 
     Returns a float64 numpy array, or the value itself when it is a tracer (dtype and ndim are
@@ -177,8 +178,7 @@ def array(fn: str, name: str, value, *, ndim=None, finite: bool = True):
     if finite and not np.all(np.isfinite(arr)):
         bad = np.argwhere(~np.isfinite(arr))[0]
         where = f" at index {tuple(int(i) for i in bad)}" if arr.ndim else ""
-        raise ValueError(f"{fn}(): {name} has a NaN or inf value{where}; remove or "
-                         "interpolate non-finite samples first")
+        raise ValueError(f"{fn}(): {name} has a NaN or inf value{where}; {fix}")
     return arr
 
 
@@ -200,3 +200,168 @@ def min_support(fn: str, h, dt: float, name: str = "h") -> None:
             f"(dt={dt:g}); h must cover at least 2 samples (h >= {2 * dt:g}), or the "
             "quadrature cannot resolve the modulating function"
         )
+
+
+# -- argument checks of the public verbs whose bodies live elsewhere (one call at their top) ---
+
+
+def _signals_arg(fn: str, signals):
+    from ._signals import Signals
+
+    if not isinstance(signals, Signals):
+        raise TypeError(f"{fn}(): signals must be a Signals (mfmjax.Signals(y, u, dt=...)), got "
+                        f"{type(signals).__name__}")
+    return signals
+
+
+def _eta(fn: str, eta) -> None:
+    if eta is not None and not is_traced(eta):
+        array(fn, "eta", eta, ndim=1, fix="give a finite constraint vector")
+
+
+def check_identify(signals, structure, mf, eta=None, delay_max=None) -> None:
+    """identify(): x64, argument kinds, eta finite, h covering at least 2 samples."""
+    from ._modulating import ModulatingFunction
+
+    require_x64("identify")
+    _signals_arg("identify", signals)
+    if not isinstance(mf, ModulatingFunction):
+        raise TypeError(f"identify(): mf must be a ModulatingFunction, got {type(mf).__name__}")
+    min_support("identify", mf.h, signals.dt, "mf.h")
+    _eta("identify", eta)
+    if delay_max is not None:
+        number("identify", "delay_max", delay_max, lo=0)
+
+
+def _grid_numbers(fn, name, value, **kw):
+    if value is None:
+        raise TypeError(f"{fn}(): {name} is required (got None)")
+    return numbers_(fn, name, value, **kw)
+
+
+def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
+                 chunk_size, simulate, progress) -> None:
+    """search(): every grid and option checked for kind and range before anything is built."""
+    fn = "search"
+    require_x64(fn)
+    signals = _signals_arg(fn, signals)
+    integers(fn, "n", n, lo=1, fix="orders are whole numbers, e.g. n=(1, 2, 3)")
+    for name, val in (("N", N), ("M", M)):
+        integers(fn, name, val, lo=1, fix=f"give whole exponents, e.g. {name}=(3, 4, 5)")
+    hs = _grid_numbers(fn, "h", h, fix="give modulating-function widths in the record's time "
+                       "unit")  # the sign is checked by the grid builder
+    if min(hs) > 0:
+        min_support(fn, np.asarray(hs), signals.dt)
+    K = signals.n_inputs
+    if m is not None:
+        if isinstance(m, (str, bytes)) or not isinstance(m, (list, tuple)):
+            raise TypeError(f"{fn}(): m must list, per input, the numerator orders to try "
+                            f"(e.g. m=[[0, 1]] for one input), got {_show(m)}")
+        for k, mk in enumerate(m):
+            integers(fn, f"m[{k}]", mk, lo=0)
+    if delays is not None:
+        if isinstance(delays, (str, bytes)) or not isinstance(delays, (list, tuple)):
+            raise TypeError(f"{fn}(): delays must list, per input, the delays to try "
+                            f"(e.g. delays=[[0.0, 1.5]] for one input), got {_show(delays)}")
+        if len(delays) != K:
+            raise ValueError(f"{fn}(): delays needs one list per input ({K}), got {len(delays)}")
+        for k, dk in enumerate(delays):
+            numbers_(fn, f"delays[{k}]", dk)  # the sign is checked by the grid builder
+    choice(fn, "score", score, ("E", "J", "fit", "aic", "bic"))
+    window(fn, "validate", validate)
+    if observer_window is not None:
+        number(fn, "observer_window", observer_window, lo=0, lo_open=True)
+    _eta(fn, eta)
+    integer(fn, "chunk_size", chunk_size, lo=1)
+    if not isinstance(simulate, (bool, np.bool_)):
+        raise TypeError(f"{fn}(): simulate must be True or False, got {_show(simulate)}")
+    if progress is not None and not callable(progress):
+        raise TypeError(f"{fn}(): progress must be a function progress(done, total) or None")
+
+
+def check_scores(signals, structure, *, h, N, M, delays, eta, validate, observer_window, h_max,
+                 delay_max) -> None:
+    """scores(): settings may be tracers (under grad/jit); concrete ones are checked."""
+    from ._structure import Structure
+
+    fn = "scores"
+    require_x64(fn)
+    signals = _signals_arg(fn, signals)
+    if not isinstance(structure, Structure):
+        raise TypeError(f"{fn}(): structure must be a Structure, got {type(structure).__name__}")
+    for name, val in (("N", N), ("M", M)):
+        if not is_traced(val):
+            numbers_(fn, name, val, lo=1)
+    if not is_traced(h):
+        numbers_(fn, "h", h, lo=0, lo_open=True)
+        min_support(fn, h, signals.dt)
+    if delays is not None and not is_traced(delays):
+        array(fn, "delays", delays, ndim=(0, 1))
+    _eta(fn, eta)
+    window(fn, "validate", validate)
+    if observer_window is not None:
+        number(fn, "observer_window", observer_window, lo=0, lo_open=True)
+    if h_max is not None:
+        number(fn, "h_max", h_max, lo=0, lo_open=True)
+    if delay_max is not None:
+        number(fn, "delay_max", delay_max, lo=0)
+
+
+def _steps_tolerances(fn, max_steps, rtol, atol) -> None:
+    integer(fn, "max_steps", max_steps, lo=1, fix="give the most solver steps, e.g. 40")
+    number(fn, "rtol", rtol, lo=0, lo_open=True)
+    number(fn, "atol", atol, lo=0, lo_open=True)
+
+
+SETTINGS = ("h", "N", "M", "delays")
+
+
+def check_refine(signals, *, score, vary, bounds, validate, observer_window, max_steps, rtol,
+                 atol, top) -> None:
+    """refine(): `vary` a sequence of names (never a bare string), finite bounds, steps >= 1."""
+    fn = "refine"
+    require_x64(fn)
+    _signals_arg(fn, signals)
+    choice(fn, "score", score, ("E", "J"))
+    if isinstance(vary, (str, bytes)):
+        raise TypeError(f"{fn}(): vary must be a sequence of names, not the string "
+                        f"{_show(vary)}; write vary=({vary!r},)")
+    if not isinstance(vary, (list, tuple, set, frozenset)) or not vary:
+        raise ValueError(f"{fn}(): vary must name some of {SETTINGS} (got {_show(vary)})")
+    for v in vary:
+        choice(fn, "vary entry", v, SETTINGS)
+    if bounds is not None:
+        if not isinstance(bounds, dict):
+            raise TypeError(f"{fn}(): bounds must be a dict such as {{'h': (lo, hi)}}, got "
+                            f"{type(bounds).__name__}")
+        for key, val in bounds.items():
+            choice(fn, "bound", key, SETTINGS)
+            if isinstance(val, (str, bytes)) or not isinstance(val, (list, tuple)) \
+                    or len(val) != 2:
+                raise ValueError(f"{fn}(): bounds[{key!r}] must be a pair (lo, hi), got "
+                                 f"{_show(val)}")
+            for side, b in zip(("lo", "hi"), val):
+                array(fn, f"bounds[{key!r}] {side}", b, ndim=(0, 1), fix="give finite bounds")
+            if key == "h":
+                min_support(fn, val[0], signals.dt, "bounds['h'] lo")
+    window(fn, "validate", validate)
+    if observer_window is not None:
+        number(fn, "observer_window", observer_window, lo=0, lo_open=True)
+    _steps_tolerances(fn, max_steps, rtol, atol)
+    integer(fn, "top", top, lo=1)
+
+
+def check_output_error(signals, *, window_, max_steps, rtol, atol) -> None:
+    fn = "output_error"
+    require_x64(fn)
+    _signals_arg(fn, signals)
+    window(fn, "window", window_)
+    _steps_tolerances(fn, max_steps, rtol, atol)
+
+
+def check_rank(fn: str, i, count: int) -> int:
+    """A rank 0 .. count-1 (SearchResult.best / row)."""
+    if count == 0:
+        raise ValueError(f"{fn}(): the search result is empty; widen the grid")
+    return integer(fn, "i", i, lo=0, hi=count - 1,
+                   fix=f"ranks run from 0 (best) to {count - 1}")

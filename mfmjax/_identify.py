@@ -141,6 +141,8 @@ def identify(
     NaN; in eager mode they also warn. Jit-able and vmap-able over `mf.h` (give `h_max`) and
     over datasets of equal shape.
     """
+    from ._boundary import check_identify
+    check_identify(signals, structure, mf, eta, delay_max)
     structure, eta = _check(signals, structure, mf, eta)
     if delay_max is None and _concrete(signals.delays):
         delay_max = float(np.max(np.asarray(signals.delays), initial=0.0))

@@ -45,10 +45,12 @@ import numpy as np
 from ._model import Model
 from ._observers import _observe_forced
 from ._search import _num, _plan, _run, _validate, padded_forced
+from . import _boundary as _b
 from ._signals import INTERSAMPLE, Signals
 from ._status import Status
 
 FORMAT, VERSION = "mfmjax-online", 1
+MAX_BUFFER_GIB = 1.0  # largest ring buffer OnlineConfig accepts (allocation-sized nonsense)
 
 
 def _tuple(x, cast):
@@ -105,43 +107,60 @@ class OnlineConfig(eqx.Module):
         offset: bool = True, eta=None, steady_rel: float = 0.1, steady_var=None,
         output_name: str = "y", input_names=None,
     ):
-        K = int(n_inputs)
-        if K < 1:
-            raise ValueError("OnlineConfig(): n_inputs must be >= 1")
-        dt = float(dt)
-        if not (math.isfinite(dt) and dt > 0):
-            raise ValueError(f"OnlineConfig(): dt must be > 0 (got {dt})")
+        fn = "OnlineConfig"
+        _b.require_x64(fn)
+        K = _b.integer(fn, "n_inputs", n_inputs, lo=1, fix="the on-line identifier needs inputs")
+        dt = _b.number(fn, "dt", dt, lo=0, lo_open=True, fix="give the sampling interval")
+        interval = _b.number(fn, "interval", interval, lo=0, lo_open=True)
         S = interval / dt
-        if not (interval > 0 and abs(S - round(S)) < 1e-9 * S and round(S) >= 16):
+        if not (abs(S - round(S)) < 1e-9 * S and round(S) >= 16):
             raise ValueError(
                 f"OnlineConfig(): interval ({interval:g}) must be a whole number (>= 16) of "
                 f"samples dt={dt:g}"
             )
-        for name, v in (("n_start", n_start), ("n_reident", n_reident)):
-            if int(v) != v or v < 1:
-                raise ValueError(f"OnlineConfig(): {name} must be an integer >= 1 (got {v})")
+        n_start = _b.integer(fn, "n_start", n_start, lo=1)
+        n_reident = _b.integer(fn, "n_reident", n_reident, lo=1)
         for name, v in (("T_obfin", T_obfin), ("T_obinit", T_obinit)):
-            if not (math.isfinite(v) and 8 * dt <= v):
+            v = _b.number(fn, name, v)
+            if not 8 * dt <= v:
                 raise ValueError(f"OnlineConfig(): {name} must span at least 8 samples (got {v})")
+        T_obfin, T_obinit = float(T_obfin), float(T_obinit)
         if T_obinit > n_reident * interval or T_obinit > n_start * interval:
             raise ValueError(
                 "OnlineConfig(): T_obinit must fit in the identification windows "
                 f"(n_reident * interval = {n_reident * interval:g})"
             )
+        tr_corr = _b.number(fn, "tr_corr", tr_corr)
         if not 0 <= tr_corr <= 1:
             raise ValueError(f"OnlineConfig(): tr_corr must lie in [0, 1] (got {tr_corr})")
+        steady_rel = _b.number(fn, "steady_rel", steady_rel)
         if not steady_rel > 0:
             raise ValueError(f"OnlineConfig(): steady_rel must be > 0 (got {steady_rel})")
+        samples = round(S)
         self.dt, self.n_inputs, self.interval = dt, K, float(interval)
-        self.n_start, self.n_reident = int(n_start), int(n_reident)
-        self.T_obfin, self.T_obinit, self.tr_corr = float(T_obfin), float(T_obinit), float(tr_corr)
-        self.n = _tuple(n, int)
-        self.m = (tuple(_tuple(mk, int) for mk in m) if m is not None
-                  else tuple((0, 1) for _ in range(K)))
+        self.n_start, self.n_reident = n_start, n_reident
+        self.T_obfin, self.T_obinit, self.tr_corr = T_obfin, T_obinit, tr_corr
+        self.n = tuple(_b.integers(fn, "n", n, lo=1, fix="orders are whole numbers, e.g. "
+                                   "n=(2, 3)"))
+        if m is not None and (isinstance(m, (str, bytes)) or not isinstance(m, (list, tuple))):
+            raise TypeError(f"OnlineConfig(): m must list, per input, the numerator orders to try "
+                            f"(e.g. m=[[0, 1]] * {K}), got {m!r}")
+        self.m = (tuple(tuple(_b.integers(fn, f"m[{k}]", mk, lo=0)) for k, mk in enumerate(m))
+                  if m is not None else tuple((0, 1) for _ in range(K)))
         if len(self.m) != K:
             raise ValueError(f"OnlineConfig(): m needs one list of orders per input ({K})")
-        self.N, self.M, self.h = _tuple(N, float), _tuple(M, float), _tuple(h, float)
-        self.delays = _tuple(delays, float) if delays is not None else (0.0,) * K
+        self.N = tuple(float(v) for v in _b.integers(fn, "N", N, lo=1, hi=19))
+        self.M = tuple(float(v) for v in _b.integers(fn, "M", M, lo=1, hi=19))
+        if not any(a >= min(self.n) and b >= min(self.n) for a in self.N for b in self.M):
+            raise ValueError(
+                f"OnlineConfig(): every candidate has N < n or M < n (n={list(self.n)}, "
+                f"N={list(self.N)}, M={list(self.M)}); widen N and M (they must be >= n)"
+            )
+        self.h = tuple(_b.numbers_(fn, "h", h, lo=0, lo_open=True,
+                                   fix="give modulating-function widths in time units"))
+        _b.min_support(fn, np.asarray(self.h), dt)
+        self.delays = (tuple(_b.numbers_(fn, "delays", delays, lo=0))
+                       if delays is not None else (0.0,) * K)
         self.intersample = _tuple(intersample, str) * (K if not isinstance(
             intersample, (list, tuple)) else 1)
         self.smooth = _tuple(smooth, bool) * (K if not isinstance(smooth, (list, tuple)) else 1)
@@ -149,8 +168,6 @@ class OnlineConfig(eqx.Module):
                         ("smooth", self.smooth)):
             if len(v) != K:
                 raise ValueError(f"OnlineConfig(): {name} needs one entry per input ({K})")
-        if any(d < 0 or not math.isfinite(d) for d in self.delays):
-            raise ValueError(f"OnlineConfig(): delays must be finite and >= 0 (got {self.delays})")
         if any(mode not in INTERSAMPLE for mode in self.intersample):
             raise ValueError(f"OnlineConfig(): intersample must be one of {INTERSAMPLE}")
         if max(self.h) + max(self.delays) >= n_reident * interval / 2:
@@ -158,15 +175,33 @@ class OnlineConfig(eqx.Module):
                 "OnlineConfig(): h + delay must be below half the re-identification window "
                 f"({n_reident * interval / 2:g}); lower h or raise n_reident"
             )
-        self.output_rule, self.offset = str(output_rule), bool(offset)
-        self.eta = _tuple(eta, float) if eta is not None else None
-        self.steady_rel = float(steady_rel)
-        self.steady_var = _tuple(steady_var, float) if steady_var is not None else None
+        self.output_rule = _b.choice(fn, "output_rule", output_rule, ("cubic", "foh"))
+        self.offset = bool(offset)
+        p = max(self.n) + 1 + sum(max(mk) + 1 for mk in self.m) + int(self.offset)
+        if eta is not None:
+            eta = _b.array(fn, "eta", eta, ndim=1, fix="give a finite constraint vector")
+            if eta.shape != (p,):
+                raise ValueError(
+                    f"OnlineConfig(): eta must have one entry per parameter of the largest "
+                    f"candidate ({p}: a_0..a_nmax, each input's b, the offset), got {eta.size}"
+                )
+        self.eta = tuple(float(v) for v in eta) if eta is not None else None
+        self.steady_rel = steady_rel
+        self.steady_var = (tuple(_b.numbers_(fn, "steady_var", steady_var, lo=0))
+                           if steady_var is not None else None)
         if self.steady_var is not None and len(self.steady_var) != K + 1:
             raise ValueError(f"OnlineConfig(): steady_var needs {K + 1} values (output, inputs)")
         self.output_name = str(output_name)
         self.input_names = (_tuple(input_names, str) if input_names is not None
                             else tuple(f"u{k + 1}" for k in range(K)))
+        buffer = self.buffer
+        gib = buffer * (K + 1) * 8 / 2**30
+        if gib > MAX_BUFFER_GIB:
+            raise ValueError(
+                f"OnlineConfig(): the sample buffer would hold {buffer:.3g} samples per signal "
+                f"({gib:.3g} GiB, limit {MAX_BUFFER_GIB:g} GiB): interval={interval:g} is "
+                f"{samples:.3g} samples of dt={dt:g}; use a coarser dt or a shorter interval"
+            )
 
     # derived sizes (samples)
     @property
@@ -357,6 +392,59 @@ def _model_record(config, model: dict, window, E_current, E_reident, reason, j, 
     }
 
 
+OUTLIER_Z = 8.0  # robust z above which a sample of the first identification window is a spike
+OUTLIER_SIDE = 5  # samples on each side whose median a spike is compared with
+
+
+def spike_scores(x: np.ndarray) -> np.ndarray:
+    """Robust z-score of each sample as an isolated spike (0 for the first and last 5 samples).
+
+    The rule: $d_i = \min(|x_i - \mathrm{med}_L|, |x_i - \mathrm{med}_R|)$, the distance to the
+    nearer of the medians of the 5 samples before and the 5 after, divided by the largest of
+    (a) the noise level, 1.4826 MAD of the first differences / sqrt(2), (b) the local trend
+    $|\mathrm{med}_R - \mathrm{med}_L|$ and (c) 5 % of the signal's 1-99 % percentile spread.
+    A step or a ramp lies near one side's median or within the trend, a smooth peak within the
+    spread floor: only a sample far from both sides scores high.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    k, n = OUTLIER_SIDE, x.size
+    z = np.zeros(n)
+    if n < 2 * k + 1 or not np.all(np.isfinite(x)):
+        return z
+    med = np.median(np.lib.stride_tricks.sliding_window_view(x, k), axis=1)  # med of x[i:i+k]
+    i = np.arange(k, n - k)
+    left, right = med[i - k], med[i + 1]
+    d = np.minimum(np.abs(x[i] - left), np.abs(x[i] - right))
+    dx = np.diff(x)
+    noise = 1.4826 * np.median(np.abs(dx - np.median(dx))) / math.sqrt(2)
+    lo, hi = np.percentile(x, [1, 99])
+    s = np.maximum(np.maximum(noise, 0.05 * (hi - lo)), np.abs(right - left))
+    z[i] = np.where(s > 0, d / np.where(s > 0, s, 1.0), np.where(d > 0, np.inf, 0.0))
+    return z
+
+
+def _outlier(state: OnlineState, j: int, w: int) -> str | None:
+    """Why the first identification window (the last `w` intervals) is refused, or None.
+
+    A window with a sample whose `spike_scores` exceed OUTLIER_Z (output or any input) is
+    refused: the identifier waits for the next window instead of adopting a model fitted to a
+    spike (the E rule guards re-identification only)."""
+    c = state.config
+    S = c.samples
+    start = (j + 1 - w) * S
+    y, u = _take(state, start, w * S)
+    for name, x in [(c.output_name, y)] + [(c.input_names[k], u[:, k])
+                                           for k in range(c.n_inputs)]:
+        z = spike_scores(x)
+        worst = int(np.argmax(z))
+        if z[worst] > OUTLIER_Z:
+            t = float(state.t0) + (start + worst) * c.dt
+            return (f"refused: outlier in the identification window ({name} = {x[worst]:.6g} at "
+                    f"t = {t:g}, robust z = {z[worst]:.3g} > {OUTLIER_Z:g}); waiting for the "
+                    "next window")
+    return None
+
+
 def _identify_window(state: OnlineState, j: int, w: int):
     """The batched search on the last `w` intervals: (window signals, plan, result)."""
     c = state.config
@@ -449,6 +537,8 @@ def _close_interval(state: OnlineState, j: int):
             event["action"] = "skipped: NaN samples in the identification window"
         elif max(r[3] for r in rows) < c.tr_corr:
             event["action"] = f"skipped: input-output correlation below tr_corr={c.tr_corr:g}"
+        elif not has and (spike := _outlier(state, j, w)) is not None:
+            event["action"] = spike
         else:
             sig, plan, res, window = _identify_window(state, j, w)
             best = _best_ok(res)
@@ -478,12 +568,60 @@ def _close_interval(state: OnlineState, j: int):
     return state, event, record, y_pred
 
 
+def _chunk_arrays(t, y, u, K: int):
+    """t (P,), y (P,), u (P, K) of one chunk, checked (time-major; a (K, P) u is refused)."""
+    t = _b.array("update", "t", t, ndim=(0, 1), fix="times must be finite")
+    t = np.atleast_1d(t)
+    P = t.shape[0]
+    y = np.atleast_1d(_b.array("update", "y", y, ndim=(0, 1), finite=False))
+    if y.shape != (P,):
+        raise ValueError(f"update(): y must have one sample per time (shape ({P},)), got shape "
+                         f"{y.shape}")
+    u = _b.array("update", "u", u, ndim=(0, 1, 2), finite=False)
+    if u.ndim == 0 and P == 1 and K == 1:
+        u = u.reshape(1, 1)
+    elif u.ndim == 1 and u.shape[0] == P and K == 1:
+        u = u[:, None]
+    elif u.ndim == 1 and P == 1 and u.shape[0] == K:
+        u = u[None, :]
+    if u.shape != (P, K):
+        hint = "; transpose it (u.T): u is time-major, one row per sample" if u.shape == (
+            K, P) else ""
+        raise ValueError(f"update(): need u (P, {K}) = ({P}, {K}), one row per time and one "
+                         f"column per input; got shape {u.shape}{hint}")
+    return t, y, u
+
+
+def _skip_gap(state: OnlineState, new_seen: int):
+    """Jump over a gap longer than the buffer: the buffered samples and interval statistics are
+    reset (as if every skipped interval had been closed invalid) in O(buffer), whatever the
+    gap's length; the model and the stream statistics are kept. Returns (state, one event)."""
+    c = state.config
+    S = c.samples
+    j0, j1 = int(state.n_seen) // S, new_seen // S
+    t0 = float(state.t0)
+    state = eqx.tree_at(
+        lambda s: (s.buf_y, s.buf_u, s.iv, s.n_seen, s.n_closed), state,
+        (np.full_like(state.buf_y, np.nan), np.full_like(state.buf_u, np.nan),
+         np.zeros_like(state.iv), np.asarray(new_seen), np.asarray(j1)))
+    t_start, t_end = t0 + j0 * S * c.dt, t0 + j1 * S * c.dt
+    event = {"interval": j0, "t_start": t_start, "t_end": t_end, "valid": False,
+             "steady": False, "operating_point": False, "corr": 0.0,
+             "action": f"gap: no samples for {j1 - j0} intervals ({t_end - t_start:g} time "
+                       "units, longer than the buffer); buffered history reset",
+             "E_current": None, "E_reident": None, "prediction": None,
+             "model": int(state.model["number"]), "gap_intervals": j1 - j0}
+    return state, event
+
+
 def update(state: OnlineState, t, y, u):
     """Feed samples (times `t` (P,), output `y` (P,), inputs `u` (P, K)); any chunk size.
 
     Times must lie on the grid t0 + i dt (t0 = the first sample ever fed) and increase; a jump
-    leaves a gap that is filled with NaN (its intervals are invalid). NaN or inf samples are
-    accepted and mark their interval invalid.
+    leaves a gap that is filled with NaN (its intervals are invalid); a gap longer than the
+    buffer resets the buffered history instead (one event says so; time and memory stay bounded
+    by the buffer whatever the jump). NaN or inf samples are accepted and mark their interval
+    invalid. `u` is time-major (P, K); a (K, P) array is refused.
 
     **Returns:** (new state, `OnlineOutputs` of the intervals closed by this chunk).
     """
@@ -491,16 +629,7 @@ def update(state: OnlineState, t, y, u):
         raise TypeError("update(): state must be an OnlineState (from init or load)")
     c = state.config
     K, S, L = c.n_inputs, c.samples, c.buffer
-    t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-    y = np.atleast_1d(np.asarray(y, dtype=np.float64))
-    u = np.asarray(u, dtype=np.float64).reshape(t.shape[0], -1) if np.size(u) else np.zeros(
-        (t.shape[0], 0))
-    if t.ndim != 1 or y.shape != t.shape or u.shape != (t.shape[0], K):
-        raise ValueError(
-            f"update(): need t (P,), y (P,), u (P, {K}); got {t.shape}, {y.shape}, {u.shape}"
-        )
-    if not np.all(np.isfinite(t)):
-        raise ValueError("update(): t contains NaN or inf; times must be finite")
+    t, y, u = _chunk_arrays(t, y, u, K)
     t0 = float(state.t0) if math.isfinite(float(state.t0)) else (float(t[0]) if t.size else 0.0)
     idx = np.round((t - t0) / c.dt).astype(np.int64)
     if np.any(np.abs(t - (t0 + idx * c.dt)) > 1e-6 * c.dt):
@@ -512,6 +641,10 @@ def update(state: OnlineState, t, y, u):
     pos = 0
     while pos < idx.size:
         n_seen = int(state.n_seen)
+        if n_seen % S == 0 and int(idx[pos]) - n_seen > L:  # gap longer than the buffer
+            state, event = _skip_gap(state, int(idx[pos]) // S * S)
+            events.append(event)
+            continue
         end_iv = (n_seen // S + 1) * S  # first index after the current interval
         stop = int(np.searchsorted(idx, end_iv, side="left"))
         # samples pos..stop-1 belong to the current interval (with NaN in the gaps)

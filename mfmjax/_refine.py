@@ -62,6 +62,10 @@ def scores(
 
     **Returns:** dict with `J`, `J_rel`, `E`, `fit`, `status`.
     """
+    from ._boundary import check_scores
+
+    check_scores(signals, structure, h=h, N=N, M=M, delays=delays, eta=eta, validate=validate,
+                 observer_window=observer_window, h_max=h_max, delay_max=delay_max)
     structure = structure.for_inputs(signals.n_inputs)
     v0, length, ob = validation_window(signals, validate, observer_window, structure.n, "scores")
     p = structure.n_params + int(signals.offset)
@@ -158,7 +162,12 @@ def refine(
     with the lowest score is returned. A refinement that fails (solver error, non-finite score,
     or no improvement) returns the starting model, with the solver's code in `result`.
     """
+    from ._boundary import check_refine
     from ._search import SearchResult
+
+    check_refine(signals, score=score, vary=vary, bounds=bounds, validate=validate,
+                 observer_window=observer_window, max_steps=max_steps, rtol=rtol, atol=atol,
+                 top=top)
 
     if isinstance(start, SearchResult):  # refine the best `top` candidates, keep the best
         if len(start) == 0:
