@@ -53,3 +53,14 @@ from ._status import Status as Status  # noqa: E402
 from ._structure import Structure as Structure  # noqa: E402
 
 __version__ = "0.1.0"
+
+__all__ = [  # the public names (tests/test_fuzz.py covers each one)
+    "Model", "ModulatingFunction", "Observation", "OnlineConfig", "OnlineIdentifier",
+    "OnlineOutputs", "OnlineState", "OutputError", "Refinement", "SearchResult", "Signals",
+    "StateSpace", "Status", "Structure", "closed_form", "constrained_solve", "cramer_rao",
+    "datasets", "enable_compile_cache", "final_state", "fit_percent", "gram", "identify",
+    "initial_state", "kernel_weights", "load_model", "modulated_signals", "moving_final_states",
+    "observe", "online", "output_error", "performance_index", "phi", "phi_integral", "phi_scaled",
+    "refine", "save_model", "scores", "search", "simulate", "state_space", "to_control",
+    "to_scipy",
+]
