@@ -90,11 +90,11 @@ def main():
     state, _ = _online.update(state, t[: 20 * S], y[: 20 * S], u[: 20 * S])
     plan = _online._plan_for(c, c.n_reident)
     sig = _online._window_signals(c, y[win], u[win], 0.0)
-    _online._run(plan, sig)
+    _online.run_plan(plan, sig)
     reps = []
     for _ in range(10):
         a = time.perf_counter()
-        _online._run(plan, sig)
+        _online.run_plan(plan, sig)
         reps.append(time.perf_counter() - a)
     ours = float(np.median(reps))
     # memory along an endless stream

@@ -11,6 +11,7 @@ _jax.config.update("jax_enable_x64", True)
 from . import datasets as datasets  # noqa: E402
 from . import online as online  # noqa: E402
 from ._cache import enable_compile_cache as enable_compile_cache  # noqa: E402
+from ._cramer_rao import cramer_rao as cramer_rao  # noqa: E402
 from ._gram import gram as gram  # noqa: E402
 from ._gram import modulated_signals as modulated_signals  # noqa: E402
 from ._identify import identify as identify  # noqa: E402
@@ -30,13 +31,12 @@ from ._online import OnlineConfig as OnlineConfig  # noqa: E402
 from ._online import OnlineIdentifier as OnlineIdentifier  # noqa: E402
 from ._online import OnlineOutputs as OnlineOutputs  # noqa: E402
 from ._online import OnlineState as OnlineState  # noqa: E402
+from ._output_error import OutputError as OutputError  # noqa: E402
+from ._output_error import output_error as output_error  # noqa: E402
 from ._persist import load_model as load_model  # noqa: E402
 from ._persist import save_model as save_model  # noqa: E402
 from ._quadrature import kernel_weights as kernel_weights  # noqa: E402
-from ._refine import OutputError as OutputError  # noqa: E402
 from ._refine import Refinement as Refinement  # noqa: E402
-from ._refine import cramer_rao as cramer_rao  # noqa: E402
-from ._refine import output_error as output_error  # noqa: E402
 from ._refine import refine as refine  # noqa: E402
 from ._refine import scores as scores  # noqa: E402
 from ._search import SearchResult as SearchResult  # noqa: E402

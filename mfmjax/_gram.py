@@ -19,6 +19,7 @@ from ._modulating import ModulatingFunction
 from ._quadrature import (
     delayed_samples,
     gregory_weights,
+    kernel_bucket,
     kernel_length,
     kernel_weights,
     modulate,
@@ -38,6 +39,7 @@ class ModulatedSignals(eqx.Module):
     bounds: jax.Array  # (p,) upper bound of each column's L2 norm (dead-column test)
     first: jax.Array  # index of the first valid sample
     excited: jax.Array  # (K,) bool: input k varies on the record
+    fits: jax.Array  # bool: every kernel's support (tau + h) fits the compiled kernel length
 
 
 def column_sources(signals: Signals, structure: Structure):
@@ -68,12 +70,23 @@ def static_span(signals: Signals, mf: ModulatingFunction, delay_max: float | Non
     return mf.h_max + delay_max
 
 
+def compiled_length(signals: Signals, mf: ModulatingFunction, delay_max: float | None = None) -> int:
+    """Static kernel length of a program for these settings: the bucket (`kernel_bucket`) of the
+    length that h (or h_max when h is traced) plus the delays (or delay_max) needs."""
+    return kernel_bucket(kernel_length(static_span(signals, mf, delay_max), signals.dt))
+
+
 def modulated_signals(
-    signals: Signals, structure: Structure, mf: ModulatingFunction, delay_max: float | None = None
+    signals: Signals, structure: Structure, mf: ModulatingFunction, delay_max: float | None = None,
+    *, length: int | None = None,
 ) -> ModulatedSignals:
-    r"""All columns of $c(t)$ (eq. 6), scaled as described in the module docstring."""
+    r"""All columns of $c(t)$ (eq. 6), scaled as described in the module docstring.
+
+    `length` is the static kernel length (default: what h_max and delay_max need); a support
+    longer than it is reported in `fits`, never truncated silently."""
     dt = signals.dt
-    length = kernel_length(static_span(signals, mf, delay_max), dt)
+    if length is None:
+        length = kernel_length(static_span(signals, mf, delay_max), dt)
     T = signals.n_samples
     K = signals.n_inputs
     data = [signals.u[:, k] for k in range(K)] + [jnp.ones(T, dtype=jnp.float64)]
@@ -91,11 +104,13 @@ def modulated_signals(
     u = signals.u
     spread = jnp.max(u, axis=0, initial=-jnp.inf) - jnp.min(u, axis=0, initial=jnp.inf)
     excited = spread > 1e-12 * jnp.maximum(jnp.max(jnp.abs(u), axis=0, initial=0.0), 1e-300)
-    return ModulatedSignals(jnp.stack(cols, axis=1), q, bounds, first, excited)
+    fits = first <= length - 1
+    return ModulatedSignals(jnp.stack(cols, axis=1), q, bounds, first, excited, fits)
 
 
 def feedthrough_corrections(
-    signals: Signals, structure: Structure, mf: ModulatingFunction, delay_max: float | None = None
+    signals: Signals, structure: Structure, mf: ModulatingFunction, delay_max: float | None = None,
+    *, length: int | None = None,
 ):
     r"""Corrections of the output columns for inputs with $m_k = n$ (direct feed-through).
 
@@ -107,7 +122,8 @@ def feedthrough_corrections(
 
     **Returns:** list of (k, Delta_k (T, n+1)) for those inputs (empty if none).
     """
-    length = kernel_length(static_span(signals, mf, delay_max), signals.dt)
+    if length is None:
+        length = kernel_length(static_span(signals, mf, delay_max), signals.dt)
     return [
         (k, feedthrough_columns(signals, k, structure.n, mf, length))
         for k in range(signals.n_inputs)

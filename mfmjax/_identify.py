@@ -9,11 +9,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._gram import check_record_length, feedthrough_corrections, gram, modulated_signals
+from ._gram import (
+    check_record_length,
+    compiled_length,
+    feedthrough_corrections,
+    gram,
+    modulated_signals,
+)
 from ._model import Model
-from ._modulating import ModulatingFunction
+from ._modulating import ModulatingFunction, as_values
 from ._signals import Signals
-from ._solve import DEAD_COLUMN_RTOL, constrained_solve, solve_status
+from ._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
 from ._status import Status, describe
 from ._structure import Structure
 
@@ -59,14 +65,16 @@ def _fmt(v):
 
 
 @eqx.filter_jit
-def _identify(signals, structure, mf, eta, delay_max):
-    ms = modulated_signals(signals, structure, mf, delay_max)
+def identify_core(signals, structure, mf, eta, length: int):
+    """The compiled core: `signals` unlabelled, `mf` as values (`as_values`), `length` the static
+    kernel length (`compiled_length`). One program per (structure, record shape, length bucket)."""
+    ms = modulated_signals(signals, structure, mf, length=length)
     G = gram(ms)
     K = signals.n_inputs
     n = structure.n
     alive = jnp.sqrt(jnp.maximum(jnp.diagonal(G), 0.0)) > DEAD_COLUMN_RTOL * ms.bounds
     theta, cond, reduced = constrained_solve(G, eta, alive)
-    corrections = feedthrough_corrections(signals, structure, mf, delay_max)
+    corrections = feedthrough_corrections(signals, structure, mf, length=length)
     if corrections:  # m_k = n: remove D_k * Delta_k from the output columns, re-solve
         starts = np.cumsum([n + 1] + [mk + 1 for mk in structure.m])
         y_cols = ms.columns[:, : n + 1]
@@ -78,22 +86,15 @@ def _identify(signals, structure, mf, eta, delay_max):
             theta, _, _ = constrained_solve(G, eta, alive, conditioning=False)
         theta, cond, reduced = constrained_solve(G, eta, alive)
     finite = jnp.isfinite(signals.y).all() & jnp.isfinite(signals.u).all()
-    status = solve_status(theta, reduced, finite)
-    status = status | jnp.where(jnp.all(ms.excited) & jnp.all(alive), 0, Status.NO_EXCITATION)
-    an = theta[n]
-    scale_a = jnp.max(jnp.abs(theta[: n + 1]))
-    an_ok = jnp.abs(an) > 1e-12 * scale_a
-    status = status | jnp.where(an_ok, 0, Status.A_N_ZERO)
-    div = jnp.where(an_ok, an, 1.0)
+    status, div, quad, J_rel = finish_solve(theta, G, reduced, n, finite,
+                                            jnp.all(ms.excited) & jnp.all(alive))
+    status = status | jnp.where(ms.fits, 0, Status.OUT_OF_BOUNDS)
     bs, pos = [], n + 1
     for k in range(K):
         bs.append(theta[pos : pos + structure.m[k] + 1] / div)
         pos += structure.m[k] + 1
     offset = theta[pos] / div if signals.offset else jnp.asarray(0.0)
-    quad = jnp.maximum(theta @ G @ theta, 0.0)
     J = mf.h ** (mf.N + mf.M + 1) * jnp.sqrt(quad)  # undo the common factor (see _gram)
-    terms = jnp.sum(theta**2 * jnp.diagonal(G))
-    J_rel = jnp.sqrt(quad / jnp.where(terms > 0, terms, 1.0))
     return Model(
         a=theta[: n + 1] / div,
         b=tuple(bs),
@@ -140,13 +141,19 @@ def identify(
     reduced Gram, a_n = 0, non-finite values) are reported in `model.status`, never as silent
     NaN; in eager mode they also warn. Jit-able and vmap-able over `mf.h` (give `h_max`) and
     over datasets of equal shape.
+
+    Settings are values: N, M, h and the delays enter the compiled program as arrays, and the
+    kernel length is bucketed (`kernel_bucket`), so a new setting whose h + delays fit the
+    current bucket reuses the program; t0 and the signal names never enter it. A traced h (or
+    delay) beyond its static bound sets `Status.OUT_OF_BOUNDS` instead of truncating.
     """
     from ._boundary import check_identify
+
     check_identify(signals, structure, mf, eta, delay_max)
     structure, eta = _check(signals, structure, mf, eta)
-    if delay_max is None and _concrete(signals.delays):
-        delay_max = float(np.max(np.asarray(signals.delays), initial=0.0))
-    model = _identify(signals, structure, mf, eta, delay_max)
+    length = compiled_length(signals, mf, delay_max)
+    model = identify_core(signals.unlabelled(), structure, as_values(mf), eta, length)
+    model = model.labelled(signals.output_name, signals.input_names)
     if _concrete(model.status) and model.status.ndim == 0 and int(model.status) != 0:
         warnings.warn(
             f"identify(): status {describe(int(model.status))} (n={structure.n}, "

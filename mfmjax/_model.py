@@ -9,7 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._modulating import ModulatingFunction
+from ._modulating import ModulatingFunction, as_values
+from ._pytree import replace_fields
 from ._status import Status, describe
 from ._structure import Structure
 
@@ -124,12 +125,22 @@ class Model(eqx.Module):
             else tuple(f"u{k + 1}" for k in range(K)),
         )
 
+    def unlabelled(self) -> Model:
+        """Labels removed and the MF settings as values (`as_values`): what jitted programs see,
+        so that names and settings never compile a new program."""
+        return replace_fields(self, output_name="y", mf=None if self.mf is None else as_values(self.mf),
+                              input_names=tuple(f"u{k + 1}" for k in range(self.n_inputs)))
+
+    def labelled(self, output_name: str, input_names: Sequence[str]) -> Model:
+        """The same model with these labels (the inverse of `unlabelled` after a jitted call)."""
+        return replace_fields(self, output_name=output_name, input_names=tuple(input_names))
+
     def summary(self) -> str:
         """A readable table of the parameters and fit diagnostics (concrete models only)."""
         lines = [
             f"continuous-time model  n={self.n}  m={list(self.m)}"
             + (
-                f"  (N={_num(self.mf.N)}, M={_num(self.mf.M)}, h={float(self.mf.h):g})"
+                f"  (N={plain_number(self.mf.N)}, M={plain_number(self.mf.M)}, h={float(self.mf.h):g})"
                 if self.mf is not None
                 else ""
             ),
@@ -163,24 +174,26 @@ class Model(eqx.Module):
             "intersample": list(self.intersample),
             "offset": float(self.offset) if self.has_offset else None,
             "theta": [float(v) for v in np.asarray(self.theta)],
-            "J": _json_float(self.J),
-            "J_rel": _json_float(self.J_rel),
-            "cond": _json_float(self.cond),
+            "J": finite_or_none(self.J),
+            "J_rel": finite_or_none(self.J_rel),
+            "cond": finite_or_none(self.cond),
             "status": describe(int(self.status)),
             "output_name": self.output_name,
             "input_names": list(self.input_names),
         }
         if self.mf is not None:
-            out.update(N=_num(self.mf.N), M=_num(self.mf.M), h=float(self.mf.h))
+            out.update(N=plain_number(self.mf.N), M=plain_number(self.mf.M), h=float(self.mf.h))
         return out
 
 
-def _num(x):
+def plain_number(x):
+    """A float, or an int when it is integral (N and M print as 4, not 4.0)."""
     v = float(np.asarray(x))
     return int(v) if v == int(v) else v
 
 
-def _json_float(x):
+def finite_or_none(x):
+    """A float, or None when it is not finite (JSON has no NaN)."""
     v = float(np.asarray(x))
     return v if np.isfinite(v) else None
 

@@ -23,6 +23,8 @@ import jax.numpy as jnp
 import jax.scipy.special as jsp
 import numpy as np
 
+from ._pytree import replace_fields
+
 MAX_DEGREE = 20  # N + M bound that the fixed Gauss rule of _quadrature integrates exactly
 
 
@@ -77,6 +79,14 @@ class ModulatingFunction(eqx.Module):
         if h_max is not None and not h_max > 0:
             raise ValueError(f"ModulatingFunction(): h_max must be > 0 (got {h_max})")
         self.h_max = None if h_max is None else float(h_max)
+
+
+def as_values(mf: ModulatingFunction) -> ModulatingFunction:
+    """`mf` with N, M and h as float64 array leaves and no static bound: the form that jitted
+    programs take, so that a new setting is a new value, never a new program (the kernel
+    length is fixed separately, by `_quadrature.kernel_bucket`)."""
+    return replace_fields(mf, N=jnp.asarray(mf.N, dtype=jnp.float64),
+                          M=jnp.asarray(mf.M, dtype=jnp.float64), h_max=None)
 
 
 def _falling(x, j: int):

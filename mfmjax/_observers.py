@@ -25,7 +25,7 @@ from ._linalg import conditioning_eigvals, expm, solve
 from ._model import Model
 from ._quadrature import gregory_weights
 from ._signals import Signals
-from ._simulate import _forced
+from ._simulate import forced_response
 from ._status import Status
 
 MIN_WINDOW = 8  # fewest samples in an observer window (Gregory rule needs 6)
@@ -52,10 +52,10 @@ def observe_window(
     are taken from the record (delays see the real history). The initial-state observer uses the
     first `ob_length` samples (default all); the simulation and E cover the whole window.
     """
-    return _observe_forced(_forced(model, u, dt), y, dt, start, length, ob_length)
+    return observe_forced(forced_response(model, u, dt), y, dt, start, length, ob_length)
 
 
-def _observe_forced(
+def observe_forced(
     forced, y, dt: float, start, length: int, ob_length: int | None, state_mask=None
 ):
     """`observe_window` on a precomputed whole-record drive (shared by moving windows).
@@ -241,8 +241,8 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
 
 @eqx.filter_jit
 def _moving(model, y, u, dt, ends, length):
-    forced = _forced(model, u, dt)  # once for the record, not once per window
-    obs = jax.vmap(lambda e: _observe_forced(forced, y, dt, e - (length - 1), length, None))(ends)
+    forced = forced_response(model, u, dt)  # once for the record, not once per window
+    obs = jax.vmap(lambda e: observe_forced(forced, y, dt, e - (length - 1), length, None))(ends)
     return obs.x_final
 
 

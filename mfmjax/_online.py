@@ -42,10 +42,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._model import Model
-from ._observers import _observe_forced
-from ._search import _num, _plan, _run, _validate, padded_forced
 from . import _boundary as _b
+from ._model import Model, plain_number
+from ._observers import observe_forced
+from ._search import padded_forced, plan_search, run_plan, validate_candidate
 from ._signals import INTERSAMPLE, Signals
 from ._status import Status
 
@@ -306,7 +306,7 @@ def _plan_for(config: OnlineConfig, intervals: int):
     template = _window_signals(config, np.zeros(L), np.zeros((L, config.n_inputs)), 0.0)
     p = config.n_max + 1 + sum(max(mk) + 1 for mk in config.m) + int(config.offset)
     eta = None if config.eta is None else np.resize(np.asarray(config.eta), p)
-    return _plan(
+    return plan_search(
         template, n=config.n, N=config.N, M=config.M, h=config.h, m=config.m,
         delays=[[d] for d in config.delays], score="E", validate=None,
         observer_window=min(config.T_obinit, (L - 1) * config.dt), eta=eta,
@@ -316,7 +316,7 @@ def _plan_for(config: OnlineConfig, intervals: int):
 
 @eqx.filter_jit
 def _score(sig, static, c):
-    return _validate(sig, static, c)
+    return validate_candidate(sig, static, c)
 
 
 @eqx.filter_jit
@@ -324,7 +324,7 @@ def _predict(sig, c, start: int, ob: int):
     """Final-state observer over samples [start, start+ob) then the simulation to the end."""
     forced, live = padded_forced(sig, c)
     length = sig.n_samples - start
-    obs = _observe_forced(forced, sig.y, sig.dt, start, length, ob, live)
+    obs = observe_forced(forced, sig.y, sig.dt, start, length, ob, live)
     return obs.y_sim[ob:], obs.status
 
 
@@ -383,7 +383,7 @@ def _model_record(config, model: dict, window, E_current, E_reident, reason, j, 
         "operating_point_time": float(model["op_time"]),
         "ident_window": [float(window[0]), float(window[1])],
         "sim_start": float(window[1]), "sim_end": None, "interval": j,
-        "N": _num(model["N"]), "M": _num(model["M"]), "h": float(model["h"]), "n": n, "m": m,
+        "N": plain_number(model["N"]), "M": plain_number(model["M"]), "h": float(model["h"]), "n": n, "m": m,
         "a": [float(v) for v in model["a"][: n + 1]],
         "b": [[float(v) for v in model["b"][k][: m[k] + 1]] for k in range(config.n_inputs)],
         "offset": float(model["offset"]) if config.offset else None,
@@ -454,7 +454,7 @@ def _identify_window(state: OnlineState, j: int, w: int):
     t_start = float(state.t0) + start * c.dt
     sig = _window_signals(c, y, u, 0.0)  # t0 is static in Signals: one compilation
     plan = _plan_for(c, w)
-    return sig, plan, _run(plan, sig), (t_start, t_start + w * S * c.dt)
+    return sig, plan, run_plan(plan, sig), (t_start, t_start + w * S * c.dt)
 
 
 def _best_ok(res):
@@ -570,6 +570,7 @@ def _close_interval(state: OnlineState, j: int):
 
 def _chunk_arrays(t, y, u, K: int):
     """t (P,), y (P,), u (P, K) of one chunk, checked (time-major; a (K, P) u is refused)."""
+    _b.require_x64("update")
     t = _b.array("update", "t", t, ndim=(0, 1), fix="times must be finite")
     t = np.atleast_1d(t)
     P = t.shape[0]

@@ -45,6 +45,22 @@ def kernel_length(span_max: float, dt: float) -> int:
     return int(math.ceil(span_max / dt - _EDGE)) + 1
 
 
+MIN_KERNEL_BUCKET = 16  # shortest compiled kernel length
+
+
+def kernel_bucket(length: int) -> int:
+    """Compiled kernel length for a needed `length`: the next of 16, 24, 32, 48, 64, 96, ...
+
+    Weights beyond a kernel's support are exactly zero, so a longer kernel changes results by
+    rounding only; bucketing lets every setting (h, delays) whose support fits reuse one program,
+    at most 1.5x the work of the exact length.
+    """
+    b = MIN_KERNEL_BUCKET
+    while b < length:
+        b = b * 3 // 2 if (b & (b - 1)) == 0 else b * 4 // 3
+    return b
+
+
 def kernel_weights(mf: ModulatingFunction, i: int, dt: float, rule: str, delay, length: int):
     r"""Weights $w_l$, $l = 0..$`length`$-1$, of the modulated signal $x_i$ (see module doc).
 

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _boundary as _b
+from ._pytree import replace_fields
 
 INTERSAMPLE = ("zoh", "foh")
 _UNIFORM_RTOL = 1e-6  # allowed relative jitter of the time column against its mean step
@@ -182,6 +183,13 @@ class Signals(eqx.Module):
         self.intersample, self.smooth, self.offset = intersample, smooth, bool(offset)
         self.output_rule = output_rule
         self.output_name, self.input_names = str(output_name), names
+
+    def unlabelled(self) -> Signals:
+        """The same data with t0 = 0 and default names: what jitted programs see, so that a new
+        t0 or column name never compiles a new program (labels are put back on the results)."""
+        K = self.n_inputs
+        return replace_fields(self, t0=0.0, output_name="y",
+                              input_names=tuple(f"u{k + 1}" for k in range(K)))
 
     # -- derived quantities -------------------------------------------------------------------
     @property

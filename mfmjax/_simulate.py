@@ -50,7 +50,7 @@ def _input_terms(A, b, mode: str, frac, dt: float):
     return P, Q, R
 
 
-def _forced(model: Model, u, dt: float):
+def forced_response(model: Model, u, dt: float):
     """Per-step drive (T, n) and direct term (T,) of all inputs (offset included)."""
     ss = state_space(model)
     T = u.shape[0]
@@ -86,7 +86,7 @@ def simulate_status(model: Model, u, x0, dt: float):
     `Status.OVERFLOW` instead of turning into inf/NaN.
     """
     u = jnp.asarray(u, dtype=jnp.float64).reshape(jnp.shape(u)[0], -1)
-    ss, drive, direct = _forced(model, u, dt)
+    ss, drive, direct = forced_response(model, u, dt)
     Phi = expm(ss.A * dt)
 
     def step(carry, dr):

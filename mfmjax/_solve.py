@@ -8,6 +8,7 @@ from . import _linalg
 from ._status import Status
 
 DEAD_COLUMN_RTOL = 1e-10  # column norm below this fraction of its bound: no excitation, masked
+A_N_RTOL = 1e-12  # |a_n| below this fraction of max |a_i|: a_n vanished (Status.A_N_ZERO)
 ILL_CONDITIONED = 1e12  # lambda_max / lambda_2 of the equilibrated G above this: flagged
 _EPS = jnp.finfo(jnp.float64).eps
 
@@ -65,3 +66,25 @@ def solve_status(theta, reduced_cond, finite_data):
     """Status bits of a solve (see `Status`)."""
     status = jnp.where(finite_data & jnp.all(jnp.isfinite(theta)), 0, Status.NONFINITE)
     return status | jnp.where(reduced_cond > ILL_CONDITIONED, Status.ILL_CONDITIONED, 0)
+
+
+def finish_solve(theta, G, reduced_cond, n: int, data_ok, excited):
+    r"""The post-solve step shared by `identify` and `search` (one candidate of order `n`).
+
+    Status bits of the solve (`solve_status`), `NO_EXCITATION` unless `excited`, `A_N_ZERO`
+    when $|a_n| \le 10^{-12} \max_i |a_i|$; the divisor that normalises $a_n = 1$ (1 when
+    $a_n$ vanished); the quadratic form $\theta^T G \theta$ of eq. (8) and the scale-free
+    $J_{rel} = (\theta^T G\theta / \sum_i \theta_i^2 G_{ii})^{1/2}$.
+
+    **Returns:** `(status, divisor, quad, J_rel)`.
+    """
+    status = solve_status(theta, reduced_cond, data_ok)
+    status = status | jnp.where(excited, 0, Status.NO_EXCITATION)
+    an = theta[n]
+    an_ok = jnp.abs(an) > A_N_RTOL * jnp.max(jnp.abs(theta[: n + 1]))
+    status = status | jnp.where(an_ok, 0, Status.A_N_ZERO)
+    quad = jnp.maximum(theta @ G @ theta, 0.0)
+    terms = jnp.sum(theta**2 * jnp.diagonal(G))
+    J_rel = jnp.sqrt(quad / jnp.where(terms > 0, terms, 1.0))
+    return status, jnp.where(an_ok, an, 1.0), quad, J_rel
+

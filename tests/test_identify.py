@@ -129,12 +129,12 @@ def test_vmap_over_datasets():
 def test_no_recompile_second_call():
     sig = simulated_experiment(third_order_two_input(), dt=0.01, n_samples=1200)
     st = Structure(3, (1, 0))
-    from mfmjax._identify import _identify
+    from mfmjax._identify import identify_core
 
     mfmjax.identify(sig, st, ModulatingFunction(4, 5, 2.0))
-    before = _identify._cached._cache_size()
+    before = identify_core._cached._cache_size()
     mfmjax.identify(sig, st, ModulatingFunction(4, 5, 1.9, h_max=2.0))
-    assert _identify._cached._cache_size() == before
+    assert identify_core._cached._cache_size() == before
 
 
 @pytest.mark.parametrize(

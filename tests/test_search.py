@@ -9,7 +9,7 @@ import pytest
 
 import mfmjax
 from mfmjax import ModulatingFunction, Signals, Structure
-from mfmjax._search import _chunk_jit
+from mfmjax._search._engine import chunk_jit as _chunk_jit
 from mfmjax._status import describe
 from mfmjax.datasets import simulated_experiment, third_order_two_input
 

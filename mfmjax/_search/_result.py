@@ -66,7 +66,7 @@ class SearchResult(eqx.Module):
 
     def best(self, i: int = 0) -> Model:
         """The candidate of rank `i` as a `Model` (parameters exactly as searched)."""
-        from ._boundary import check_rank
+        from .._boundary import check_rank
 
         i = check_rank("best", i, len(self))
         r = self.row(i)

@@ -52,7 +52,7 @@ def search(
 
     **Returns:** a `SearchResult`.
     """
-    from ._boundary import check_search
+    from .._boundary import check_search
 
     check_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score, validate=validate,
                  observer_window=observer_window, eta=eta, chunk_size=chunk_size,

@@ -1,0 +1,28 @@
+r"""The Cramer-Rao bound of the free parameters for white output noise."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._model import Model
+from ._output_error import free_parameters, simulated_output
+
+
+def cramer_rao(model: Model, u, dt: float, x0, sigma: float, *, length: int | None = None):
+    r"""Cramer-Rao standard deviations of the free parameters (and x0) of `model` for white
+    output noise of standard deviation `sigma`: $\sqrt{\mathrm{diag}(\sigma^2 (J^T J)^{-1})}$,
+    $J = \partial y_{sim} / \partial(\theta, x_0)$ by `jax.jacfwd` of the exact simulation.
+
+    **Returns:** (names, std of the parameters).
+    """
+    u = jnp.asarray(u, dtype=jnp.float64).reshape(jnp.shape(u)[0], -1)
+    length = u.shape[0] if length is None else length
+    names, theta0 = free_parameters(model)
+    sim = simulated_output(model, u, dt, 0, length)
+    J = jax.jacfwd(lambda v: sim(v[: theta0.size], v[theta0.size :]))(
+        jnp.concatenate([jnp.asarray(theta0), jnp.asarray(x0, dtype=jnp.float64)]))
+    J = np.asarray(J)
+    cov = sigma**2 * np.linalg.pinv(J.T @ J)
+    return names, np.sqrt(np.diag(cov))[: theta0.size]

@@ -1,0 +1,161 @@
+"""Settings are values (issue 12): a new N, M, h, window start, t0 or signal name is a new value
+for the compiled programs, never a new program. Compilations are counted from JAX's own log
+(`jax_log_compiles`), so every program counts: jitted cores and eager primitives alike.
+"""
+
+import contextlib
+import logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import mfmjax
+from mfmjax import ModulatingFunction, OnlineConfig, OnlineIdentifier, Signals, Status, Structure
+from mfmjax.datasets import simulated_experiment, switching_experiment, third_order_two_input
+
+
+@contextlib.contextmanager
+def compiles():
+    """Names of the programs JAX compiles inside the block."""
+    names = []
+
+    class Handler(logging.Handler):
+        def emit(self, record):
+            msg = record.getMessage()
+            if msg.startswith("Compiling "):
+                names.append(msg.split()[1])
+
+    handler, logger = Handler(), logging.getLogger("jax")
+    before = jax.config.jax_log_compiles
+    jax.config.update("jax_log_compiles", True)
+    logger.addHandler(handler)
+    try:
+        yield names
+    finally:
+        logger.removeHandler(handler)
+        jax.config.update("jax_log_compiles", before)
+
+
+DT = 0.05
+ST = Structure(3, [1, 1])
+
+
+@pytest.fixture(scope="module")
+def record():
+    return simulated_experiment(third_order_two_input(), dt=DT, n_samples=1200, seed=3)
+
+
+def _settings(count):
+    """`count` distinct (N, M, h) whose supports need 50..64 samples: one kernel bucket (64)."""
+    rng = np.random.default_rng(0)
+    return [(int(rng.integers(3, 7)), int(rng.integers(3, 7)), float(h))
+            for h in np.linspace(2.45, 3.15, count)]
+
+
+def test_identify_new_settings_inside_a_bucket_compile_once(record):
+    settings = _settings(20)
+    with compiles() as first:
+        mfmjax.identify(record, ST, ModulatingFunction(*settings[0]))
+    with compiles() as rest:
+        models = [mfmjax.identify(record, ST, ModulatingFunction(*s)) for s in settings[1:]]
+    assert rest == [], f"new settings compiled {rest}"
+    assert len(set(float(m.mf.h) for m in models)) == 19  # really 19 different settings
+    # the values reached the program: each model equals a fresh identify of its own setting
+    # (exact: the same program on the same values)
+    again = mfmjax.identify(record, ST, ModulatingFunction(*settings[7]))
+    np.testing.assert_array_equal(np.asarray(again.a), np.asarray(models[6].a))
+    assert any("_identify" in name for name in first) or first == []  # cached from elsewhere
+
+
+def test_identify_values_equal_exact_kernel_length(record):
+    """Bucketing only pads the kernel with exact zeros: parameters equal those of the exact
+    length to rounding (the summation order of the convolution changes), 1e-10 relative."""
+    from mfmjax._identify import identify_core
+    from mfmjax._modulating import as_values
+    from mfmjax._quadrature import kernel_length
+
+    mf = ModulatingFunction(4, 5, 2.6)
+    exact = identify_core(record.unlabelled(), ST.for_inputs(2), as_values(mf), jnp.ones(9),
+                      kernel_length(2.6, DT))
+    bucketed = mfmjax.identify(record, ST, mf)
+    np.testing.assert_allclose(np.asarray(bucketed.theta), np.asarray(exact.theta), rtol=1e-10)
+
+
+def test_new_t0_and_names_compile_nothing(record):
+    mf = ModulatingFunction(4, 5, 2.6)
+    mfmjax.identify(record, ST, mf)
+    mfmjax.observe(mfmjax.identify(record, ST, mf), record, (10.0, 50.0))
+    relabelled = Signals(np.asarray(record.y), np.asarray(record.u), dt=DT, t0=1234.5,
+                         output_name="temperature", input_names=["valve", "pump"])
+    with compiles() as names:
+        model = mfmjax.identify(relabelled, ST, mf)
+        obs = mfmjax.observe(model, relabelled, (1234.5 + 10.0, 1234.5 + 50.0))
+    assert names == [], f"a new t0 / names compiled {names}"
+    assert model.output_name == "temperature" and model.input_names == ("valve", "pump")
+    assert np.isfinite(float(obs.E))
+
+
+def test_observe_new_window_start_compiles_nothing(record):
+    model = mfmjax.identify(record, ST, ModulatingFunction(4, 5, 2.6))
+    mfmjax.observe(model, record, (5.0, 25.0))
+    with compiles() as names:
+        for start in (7.0, 11.5, 30.0):
+            mfmjax.observe(model, record, (start, start + 20.0))
+    assert names == []
+
+
+def test_traced_h_beyond_its_bound_is_flagged_not_truncated(record):
+    """h_max = 2.0 compiles a 48-sample kernel (bucket of 41): h up to 2.35 fits exactly; a traced
+    h beyond that would be truncated, so it is flagged OUT_OF_BOUNDS instead."""
+
+    @jax.jit
+    def status(h):
+        return mfmjax.identify(record, ST, ModulatingFunction(4, 5, h, h_max=2.0)).status
+
+    assert int(status(2.2)) == 0  # above h_max but inside the compiled kernel: exact
+    assert int(status(3.0)) & Status.OUT_OF_BOUNDS
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    sig = simulated_experiment(third_order_two_input(), dt=DT, n_samples=600, seed=5,
+                               noise_std=0.02)
+    return sig
+
+
+def test_output_error_from_20_different_starts_compiles_once(noisy):
+    starts = [mfmjax.identify(noisy, ST, ModulatingFunction(*s)) for s in _settings(20)]
+    assert len({(float(m.mf.N), float(m.mf.M), float(m.mf.h)) for m in starts}) == 20
+    mfmjax.output_error(noisy, starts[0], max_steps=30)
+    with compiles() as names:
+        fits = [mfmjax.output_error(noisy, m, max_steps=30) for m in starts[1:]]
+    assert names == [], f"new starts compiled {names}"
+    assert all(np.isfinite(f.E) and f.E <= f.E_start for f in fits)
+
+
+def test_scores_new_settings_compile_nothing(noisy):
+    mfmjax.scores(noisy, ST, h=2.6, N=4, M=5, h_max=3.15)
+    with compiles() as names:
+        for N, M, h in _settings(5):
+            out = mfmjax.scores(noisy, ST, h=h, N=N, M=M, h_max=3.15)
+    assert names == []
+    assert np.isfinite(float(out["E"]))
+
+
+def test_online_identifier_compiles_its_programs_once_per_run():
+    """After the first identification, the rest of the run (re-identifications after the
+    operating point included) compiles nothing."""
+    t, y, u, switches = switching_experiment()
+    ident = OnlineIdentifier(OnlineConfig(dt=1.0, n_inputs=2, n=(2,), intersample=("foh", "zoh")))
+    half = len(t) // 3
+    for c0 in range(0, half, 250):
+        ident.update(t[c0 : c0 + 250], y[c0 : c0 + 250], u[c0 : c0 + 250])
+    assert len(ident.models) >= 1
+    before = len(ident.models)
+    with compiles() as names:
+        for c0 in range(half, len(t), 250):
+            ident.update(t[c0 : c0 + 250], y[c0 : c0 + 250], u[c0 : c0 + 250])
+    assert len(ident.models) > before  # a re-identification happened in the counted part
+    assert names == [], f"the on-line run compiled {names}"
