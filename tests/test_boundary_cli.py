@@ -1,0 +1,448 @@
+"""The command line's boundary: every user error is one stderr line and exit code 2, an internal
+error is one line with a bug-report hint and exit code 1; CSV files, package attributes, data
+paths. The cases are those of issue 16."""
+
+import importlib
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import mfmjax
+from mfmjax import _cli, _signals
+from mfmjax._cli import main
+from mfmjax.datasets import simulated_experiment, switching_experiment, third_order_two_input
+
+
+def _write_csv(path, header, columns):
+    with open(path, "w") as fh:
+        fh.write(",".join(header) + "\n")
+        for row in zip(*columns):
+            fh.write(",".join(repr(float(v)) for v in row) + "\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("boundary")
+    sig = simulated_experiment(third_order_two_input(), dt=0.01, n_samples=2000)
+    y, u = np.asarray(sig.y), np.asarray(sig.u)
+    t = 0.01 * np.arange(y.size)
+    rec = _write_csv(d / "rec.csv", ["t", "temp", "u1", "u2"], [t, y, u[:, 0], u[:, 1]])
+    const = _write_csv(d / "const.csv", ["t", "temp", "u1", "u2"],
+                       [t, np.full_like(y, 21.5), u[:, 0], u[:, 1]])
+    model = d / "model.json"
+    assert main(["identify", str(rec), *IDENT, "--save", str(model)]) == 0
+    return {"rec": str(rec), "const": str(const), "model": str(model), "dir": d}
+
+
+COLS = ["--output", "temp", "--inputs", "u1,u2", "--time", "t"]
+IDENT = COLS + ["--n", "3", "--m", "1,0", "--N", "4", "--M", "5", "--h", "2.0",
+                "--intersample", "foh,zoh"]
+
+
+def _set(args, option, value):
+    args = list(args)
+    if option in args:
+        args[args.index(option) + 1] = value
+    else:
+        args += [option, value]
+    return args
+
+
+def _one_line_error(capsys, code, argv, match):
+    assert main(argv) == code
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert match in err, err
+    return err
+
+
+@pytest.mark.parametrize(
+    "command, option, value, match",
+    [
+        ("identify", "--N", "inf", "argument --N: expected a finite number, got 'inf'"),
+        ("identify", "--N", "nan", "argument --N: expected a finite number, got 'nan'"),
+        ("identify", "--M", "1e999", "argument --M: expected a finite number, got '1e999'"),
+        ("identify", "--h", "inf", "argument --h: expected a finite number, got 'inf'"),
+        ("identify", "--n", "2.5", "argument --n: expected an integer >= 1, got '2.5'"),
+        ("identify", "--n", "inf", "argument --n: expected an integer >= 1"),
+        ("identify", "--inputs", "temp", "'temp' is also the output (--output temp)"),
+        ("identify", "--inputs", "u1,temp", "'temp' is also the output (--output temp)"),
+        ("identify", "--inputs", "u1,u1", "'u1' is given twice"),
+        ("identify", "--inputs", "t,u1", "'t' is also the time column (--time t)"),
+        ("identify", "--delays", "0,inf", "--delays: inf is not a finite number"),
+        ("search", "--N", "inf", "--N: inf is not a finite number"),
+        ("search", "--h", "nan", "--h: nan is not a finite number"),
+        ("search", "--validate", "0,inf", "--validate: inf is not a finite number"),
+        ("search", "--validate", "nan,3", "--validate: nan is not a finite number"),
+        ("search", "--validate", "5", "--validate: expected T0,T1 (two numbers), got '5'"),
+        ("search", "--validate", "1,2,3", "--validate: expected T0,T1"),
+        ("search", "--validate", "9,2", "--validate: T0 must be below T1"),
+        ("search", "--top", "0", "argument --top: expected an integer >= 1"),
+        ("validate", "--window", "0,inf", "--window: inf is not a finite number"),
+        ("validate", "--window", "nan,nan", "--window: nan is not a finite number"),
+        ("validate", "--window", "4", "--window: expected T0,T1 (two numbers), got '4'"),
+        ("validate", "--window", "x", "--window: expected comma-separated numbers"),
+    ],
+)
+def test_option_errors_are_one_line_exit_2(files, capsys, command, option, value, match):
+    if command == "identify":
+        args = ["identify", files["rec"], *IDENT]
+    elif command == "search":
+        args = ["search", files["rec"], *COLS, "--h", "1.5", "--n", "1", "--N", "3", "--M", "3"]
+    else:
+        args = ["validate", files["rec"], *COLS, "--model", files["model"]]
+    _one_line_error(capsys, 2, _set(args, option, value), match)
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "-1", "0"])
+def test_dt_option_finite_and_positive(files, capsys, value):
+    args = ["identify", files["rec"], *IDENT]
+    i = args.index("--time")
+    del args[i : i + 2]
+    _one_line_error(capsys, 2, args + ["--dt", value], "argument --dt: expected a finite number > 0")
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "100", "-3"])
+def test_demo_horizon(capsys, value):
+    _one_line_error(capsys, 2, ["demo", "--horizon", value], "argument --horizon: expected a "
+                    "finite number >= 2500")
+
+
+def test_dataset_seed(capsys, tmp_path):
+    _one_line_error(capsys, 2, ["dataset", "forehearth", "--seed", "-1", "-o",
+                                str(tmp_path / "x.csv")], "argument --seed: expected an integer")
+
+
+def test_validate_constant_output_fit_undefined(files, capsys):
+    args = ["validate", files["const"], *COLS, "--model", files["model"]]
+    assert main(args + ["--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["fit"] is None and "constant" in res["fit_note"] and np.isfinite(res["E"])
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "fit           undefined: the measured temp is constant" in out and "inf" not in out
+
+
+def test_help_lists_validate_with_percent(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "E, fit % and observed x0 of a saved model on a record" in out
+
+
+def test_internal_error_exit_1_with_bug_hint(capsys, monkeypatch, tmp_path):
+    import mfmjax.datasets as ds
+
+    def broken(*a, **k):
+        return {}["t"]  # a KeyError: a bug, not a user mistake
+
+    monkeypatch.setattr(ds, "forehearth", broken)
+    err = _one_line_error(capsys, 1, ["dataset", "forehearth", "-o", str(tmp_path / "x.csv")],
+                          "internal error (KeyError: 't'); this is a bug in mfmjax")
+    assert "MFMJAX_TRACEBACK=1" in err
+    monkeypatch.setenv("MFMJAX_TRACEBACK", "1")
+    with pytest.raises(KeyError):
+        main(["dataset", "forehearth", "-o", str(tmp_path / "x.csv")])
+
+
+def test_value_check_inside_jit_is_a_user_error(capsys, monkeypatch, tmp_path):
+    import equinox as eqx
+    import jax
+
+    import mfmjax.datasets as ds
+
+    @jax.jit
+    def checked(x):
+        return eqx.error_if(x, x > 0, "simulate(): the input u has a NaN or inf sample")
+
+    def data_problem(*a, **k):
+        checked(1.0)
+
+    monkeypatch.setattr(ds, "forehearth", data_problem)
+    _one_line_error(capsys, 2, ["dataset", "forehearth", "-o", str(tmp_path / "x.csv")],
+                    "error: simulate(): the input u has a NaN or inf sample")
+
+
+def test_warnings_are_one_line(capsys, monkeypatch, tmp_path):
+    import warnings
+
+    import mfmjax.datasets as ds
+
+    def warns(*a, **k):
+        warnings.warn("cond(G) is large:\n  results may be inaccurate", UserWarning, stacklevel=2)
+        raise ValueError("forehearth(): stop here")
+
+    monkeypatch.setattr(ds, "forehearth", warns)
+    assert main(["dataset", "forehearth", "-o", str(tmp_path / "x.csv")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["warning: cond(G) is large: results may be inaccurate",
+                   "error: forehearth(): stop here"]
+
+
+# -- on-line command: config, memory, checkpoints -----------------------------------------------
+
+CUT = 2345
+
+
+@pytest.fixture(scope="module")
+def plant(tmp_path_factory):
+    d = tmp_path_factory.mktemp("online")
+    t, y, u, _ = switching_experiment(n_intervals=20)
+    full = _write_csv(d / "plant.csv", ["time", "temp", "u1", "u2"], [t, y, u[:, 0], u[:, 1]])
+    head = _write_csv(d / "head.csv", ["time", "temp", "u1", "u2"],
+                      [t[:CUT], y[:CUT], u[:CUT, 0], u[:CUT, 1]])
+    cfg = d / "n2.toml"
+    cfg.write_text("[online]\nn = [2]\n")
+    return {"full": str(full), "head": str(head), "cfg": str(cfg), "dir": d}
+
+
+ONLINE = ["--output", "temp", "--inputs", "u1,u2", "--time", "time", "--intersample", "foh,zoh"]
+
+
+@pytest.mark.parametrize(
+    "toml, match",
+    [
+        ("interval = inf\n", "--config: interval = inf in"),
+        ("interval = nan\n", "--config: interval = nan in"),
+        ("h = [50.0, inf]\n", "--config: h = [50.0, inf] in"),
+        ("interval = 1e9\n", "GiB"),  # 1e9 samples per interval: refused before allocating
+        ("online = 3\n", "must be a table"),
+    ],
+)
+def test_online_config_values(plant, capsys, tmp_path, toml, match):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(toml)
+    _one_line_error(capsys, 2, ["online", plant["head"], *ONLINE, "--config", str(cfg)], match)
+
+
+def test_online_memory_bound(plant, capsys, tmp_path, monkeypatch):
+    """interval = 1e5 samples: a 0.8 M-sample buffer (19 MB) whose identification work is
+    about _WORK_PER_BUFFER times that (4.9 GB), refused when 1 GiB is available."""
+    monkeypatch.setattr(_cli, "_available_memory", lambda: 2**30)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("interval = 1e5\nT_obfin = 500.0\n")
+    _one_line_error(capsys, 2, ["online", plant["head"], *ONLINE, "--config", str(cfg)],
+                    "needs a buffer of 800,000 samples and about 4.58 GiB of memory (available: "
+                    "1.0 GiB); use a shorter interval or a coarser dt")
+
+
+@pytest.fixture(scope="module")
+def checkpoint_run(plant):
+    """An uninterrupted run and a run resumed from a checkpoint at CUT (both JSON)."""
+    import contextlib
+    import io
+
+    ck = str(plant["dir"] / "state.npz")
+    out = {}
+    for name, argv in [
+        ("full", ["online", plant["full"], *ONLINE, "--config", plant["cfg"], "--json"]),
+        ("head", ["online", plant["head"], *ONLINE, "--config", plant["cfg"], "--json",
+                  "--checkpoint", ck]),
+        ("resumed", ["online", plant["full"], *ONLINE, "--json", "--checkpoint", ck]),
+    ]:
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            assert main(argv) == 0
+        out[name] = json.loads(buf.getvalue())
+    out["ck"] = ck
+    return out
+
+
+def test_resumed_mse_covers_the_whole_run(checkpoint_run):
+    full, head, res = checkpoint_run["full"], checkpoint_run["head"], checkpoint_run["resumed"]
+    assert res["models"] == full["models"] and res["intervals"] == full["intervals"] == 20
+    # the same squared errors summed in another order: equal to a few ulps
+    assert res["mse"] == pytest.approx(full["mse"], rel=1e-12)
+    assert res["mse_scope"] == ("the whole run: 9 intervals before the checkpoint and 11 in "
+                                "this call")
+    assert head["mse_scope"] == "9 intervals" and res["mse_this_call"] != res["mse"]
+
+
+@pytest.mark.parametrize(
+    "extra, match",
+    [
+        (["--delays", "5,0"], "was written with delays=0,0, --delays gives delays=5,0"),
+        (["--intersample", "zoh,zoh"], "was written with intersample=foh,zoh, --intersample "
+                                       "gives intersample=zoh,zoh"),
+        ("toml:n = [3]\n", "was written with n=2, --config n gives n=3"),
+        ("toml:tr_corr = 0.25\n", "was written with tr_corr=0.5, --config tr_corr gives "
+                                  "tr_corr=0.25"),
+    ],
+)
+def test_checkpoint_conflicting_options_refused(plant, checkpoint_run, capsys, tmp_path, extra,
+                                                match):
+    args = ["online", plant["full"], *ONLINE, "--checkpoint", checkpoint_run["ck"]]
+    if isinstance(extra, str):
+        cfg = tmp_path / "c.toml"
+        cfg.write_text(extra[5:])
+        extra = ["--config", str(cfg)]
+    for k in range(0, len(extra), 2):
+        args = _set(args, extra[k], extra[k + 1])
+    _one_line_error(capsys, 2, args, match)
+
+
+def test_checkpoint_same_options_accepted_and_other_columns_refused(plant, checkpoint_run,
+                                                                    capsys, tmp_path):
+    import shutil
+
+    ck = tmp_path / "copy.npz"
+    shutil.copy(checkpoint_run["ck"], ck)
+    assert main(["online", plant["full"], *ONLINE, "--config", plant["cfg"], "--delays", "0,0",
+                 "--checkpoint", str(ck), "--json"]) == 0
+    capsys.readouterr()
+    args = _set(["online", plant["full"], *ONLINE, "--checkpoint", str(ck)], "--inputs", "u2,u1")
+    _one_line_error(capsys, 2, args, "was written for output 'temp' and inputs ['u1', 'u2'], "
+                    "the command line gives 'temp' and ['u2', 'u1']")
+
+
+@pytest.mark.parametrize(
+    "damage, match",
+    [
+        (lambda b: b"", "is empty (0 bytes)"),
+        (lambda b: b[: len(b) // 2], "is truncated or corrupted"),
+        (lambda b: b[:-200] + bytes(200), "is truncated or corrupted"),
+        (lambda b: b"PK\x03\x04" + bytes(64), "is truncated or corrupted"),
+    ],
+)
+def test_damaged_checkpoint_one_line(plant, checkpoint_run, capsys, tmp_path, damage, match):
+    ck = tmp_path / "bad.npz"
+    with open(checkpoint_run["ck"], "rb") as fh:
+        ck.write_bytes(damage(fh.read()))
+    _one_line_error(capsys, 2, ["online", plant["full"], *ONLINE, "--checkpoint", str(ck)], match)
+
+
+def test_damaged_checkpoint_subprocess_no_traceback(plant, checkpoint_run, tmp_path):
+    """The one subprocess smoke test: what a shell user sees (jax's own logging included)."""
+    ck = tmp_path / "bad.npz"
+    with open(checkpoint_run["ck"], "rb") as fh:
+        ck.write_bytes(fh.read()[:1000])
+    r = subprocess.run([sys.executable, "-m", "mfmjax._cli", "online", plant["full"], *ONLINE,
+                        "--checkpoint", str(ck)], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stdout == ""
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "truncated or corrupted" in lines[0] and "Traceback" not in r.stderr
+
+
+# -- demo: strict JSON ---------------------------------------------------------------------------
+
+
+def test_demo_results_json_is_strict_when_no_prediction(tmp_path, capsys):
+    """A horizon too short for any prediction (600 s: the first model needs 8 intervals of
+    250 s) gives MSE NaN: results.json has null and says why (the CLI's 3000 s case, cheaper)."""
+    from mfmjax._demo import demo
+
+    demo(str(tmp_path), horizon=600.0)
+    out = capsys.readouterr().out
+    assert out.count("mean square prediction error: undefined (no prediction yet)") == 2
+
+    def refuse(name):
+        raise AssertionError(f"non-standard JSON constant {name}")
+
+    res = json.loads((tmp_path / "results.json").read_text(), parse_constant=refuse)
+    for e in res["experiments"]:
+        assert e["mse"] is None and "no prediction yet" in e["mse_note"]
+
+
+# -- CSV files -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "content, match",
+    [
+        (bytes(range(256)) * 4, "binary file"),
+        (b"\x89PNG\r\n\x1a\n" + bytes(100), "binary file"),
+        (b"t;y;u\n0;1,5;2\n1;2,5;3\n", "separated by ';'"),
+        ("t,y,u\n0,1,2\n1,2,\xe93\n".encode("latin-1"), r"not a UTF-8 text file \(byte 0xe9"),
+    ],
+)
+def test_csv_binary_and_semicolon(tmp_path, content, match):
+    p = tmp_path / "x.csv"
+    p.write_bytes(content)
+    with pytest.raises(ValueError, match=match):
+        _signals.read_csv(p)
+    with pytest.raises(ValueError, match=match):
+        mfmjax.Signals.from_csv(p, output="y", inputs=["u"], dt=1.0)
+
+
+@pytest.fixture(params=["loadtxt", "pandas"])
+def fast_path(request, monkeypatch):
+    if request.param == "pandas":
+        pytest.importorskip("pandas")
+        monkeypatch.setattr(_signals, "_PANDAS_MIN_CHARS", 0)
+    else:
+        monkeypatch.setattr(_signals, "_PANDAS_MIN_CHARS", 10**18)
+        monkeypatch.delitem(sys.modules, "pandas", raising=False)
+    return request.param
+
+
+def test_csv_fast_paths_equal_careful_path(tmp_path, fast_path, monkeypatch):
+    rng = np.random.default_rng(1)
+    data = rng.standard_normal((500, 4)) * 10.0 ** rng.integers(-300, 300, (500, 4))
+    p = _write_csv(tmp_path / "x.csv", ["t", "y", "u1", "u2"], data.T)
+    fast = _signals.read_csv(p)
+    monkeypatch.setattr(_signals, "_parse_fast", lambda *a: None)  # the line-by-line path
+    careful = _signals.read_csv(p)
+    for j, k in enumerate(["t", "y", "u1", "u2"]):
+        assert np.array_equal(fast[k], careful[k]) and np.array_equal(fast[k], data[:, j])
+
+
+@pytest.mark.parametrize(
+    "text, match, expect",
+    [
+        ("a,b\n1,2\n3\n", "line 3 has 1 fields", None),  # pandas would pad with NaN
+        ("a,b\n1,2\n3,4,5\n", "line 3 has 3 fields", None),
+        ("a,b\n1,2\n3,x\n", "line 3 has a non-numeric value", None),
+        ("a,b\n1,2\n\n  \n3,\n", None, [[1, 3], [2, np.nan]]),  # blank lines, empty cell
+        ('a,b\n"1",2\n3,4\n', None, [[1, 3], [2, 4]]),  # quoted numbers
+        ("a,b\r\n1, 2\r\n3 ,4\r\n", None, [[1, 3], [2, 4]]),
+        ("\ufeffa,b\n1,2\n", None, [[1], [2]]),  # UTF-8 byte-order mark
+    ],
+)
+def test_csv_edge_cases_both_paths(tmp_path, fast_path, text, match, expect):
+    p = tmp_path / "x.csv"
+    p.write_bytes(text.encode())
+    if match:
+        with pytest.raises(ValueError, match=match):
+            _signals.read_csv(p)
+    else:
+        cols = _signals.read_csv(p)
+        assert list(cols) == ["a", "b"]
+        np.testing.assert_array_equal(np.array([cols["a"], cols["b"]]), np.array(expect))
+
+
+def test_csv_whitespace_file_with_names(tmp_path, fast_path):
+    p = tmp_path / "x.dat"
+    p.write_text(" 1  2.5 3\n4 5 6e-3\n")
+    cols = _signals.read_csv(p, names=["k", "u", "y"])
+    np.testing.assert_array_equal(cols["y"], [3.0, 6e-3])
+
+
+# -- package attributes and data paths ------------------------------------------------------------
+
+
+def test_datasets_is_a_package_attribute():
+    """`import mfmjax; mfmjax.datasets.forehearth(1)` (an AttributeError before)."""
+    d = mfmjax.datasets.forehearth(1)
+    assert d["t"].size > 0 and "datasets" in dir(mfmjax)
+
+
+def test_daisy_and_tests_honour_mfmjax_data(tmp_path, monkeypatch):
+    folder = tmp_path / "daisy-heating-system"
+    folder.mkdir()
+    rows = "\n".join(f"{2.0 * k} {np.sin(k / 5):.6f} {np.cos(k / 7):.6f}" for k in range(30))
+    (folder / "heating_system.dat").write_text(rows + "\n")
+    monkeypatch.setenv("MFMJAX_DATA", str(tmp_path))
+    sig = mfmjax.datasets.daisy("heating_system")
+    assert sig.n_samples == 30 and sig.dt == 2.0
+    import conftest
+
+    try:
+        assert importlib.reload(conftest).SHARED == str(tmp_path)
+    finally:
+        monkeypatch.delenv("MFMJAX_DATA")
+        importlib.reload(conftest)
