@@ -397,7 +397,7 @@ OUTLIER_SIDE = 5  # samples on each side whose median a spike is compared with
 
 
 def spike_scores(x: np.ndarray) -> np.ndarray:
-    """Robust z-score of each sample as an isolated spike (0 for the first and last 5 samples).
+    r"""Robust z-score of each sample as an isolated spike (0 for the first and last 5 samples).
 
     The rule: $d_i = \min(|x_i - \mathrm{med}_L|, |x_i - \mathrm{med}_R|)$, the distance to the
     nearer of the medians of the 5 samples before and the 5 after, divided by the largest of

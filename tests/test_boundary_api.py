@@ -1,0 +1,354 @@
+"""Issue 16, library half: every bad argument listed in the issue gets a clear ValueError or
+TypeError naming the function, the argument, the value and the fix (not a raw exception, not a
+silent wrong answer); on-line gaps and first-window outliers are handled as documented."""
+
+import math
+import warnings
+
+import jax
+import numpy as np
+import pytest
+
+import mfmjax
+from mfmjax import ModulatingFunction, OnlineConfig, Signals, Structure
+from mfmjax._online import OUTLIER_Z, spike_scores
+
+DT = 0.05
+NAN, INF = float("nan"), float("inf")
+
+
+@pytest.fixture(scope="module")
+def data():
+    model = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]])
+    t = np.arange(400) * DT
+    u = np.sin(t) + np.sign(np.sin(0.7 * t))
+    y = np.asarray(mfmjax.simulate(model, u, dt=DT))
+    return model, Signals(y, u, dt=DT)
+
+
+@pytest.fixture(scope="module")
+def fitted(data):
+    _, sig = data
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return mfmjax.identify(sig, Structure(2, 0), ModulatingFunction(3, 3, 4.0))
+
+
+# -- Signals, Structure, identify ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kw,err,match", [
+    (dict(y=np.ones(20) > 0, dt=DT), TypeError, r"Signals\(\): y is a bool array"),
+    (dict(y=np.ones(20), dt=True), TypeError, r"Signals\(\): dt must be a number, got bool"),
+    (dict(y=np.ones(20), dt=DT, t0=NAN), ValueError, r"Signals\(\): t0 must be a finite number"),
+    (dict(y=np.ones(20), dt="0.1"), TypeError, r"dt must be a number, got str"),
+    (dict(y="1,2,3", dt=DT), TypeError, r"y must be an array of numbers, got the string"),
+    (dict(y=np.ones(1), dt=DT), ValueError, r"y has 1 sample\(s\); a record needs at least 2"),
+    (dict(y=np.ones(20), u=np.ones(20, dtype=bool), dt=DT), TypeError, r"u is a bool array"),
+])
+def test_signals_refuses(kw, err, match):
+    with pytest.raises(err, match=match):
+        Signals(**kw)
+
+
+@pytest.mark.parametrize("args,err,match", [
+    ((2.5,), ValueError, r"Structure\(\): n must be an integer \(got n=2.5\)"),
+    ((NAN,), ValueError, r"n must be a finite number \(got n=nan\)"),
+    ((True,), TypeError, r"n must be a number, got bool"),
+    ((2, [0.5]), ValueError, r"m\[0\] must be an integer"),
+    ((2, "1"), TypeError, r"m must be a number or a sequence of numbers, got the string"),
+])
+def test_structure_refuses(args, err, match):
+    with pytest.raises(err, match=match):
+        Structure(*args)
+
+
+def test_identify_h_below_two_samples(data):
+    _, sig = data
+    with pytest.raises(ValueError, match=r"identify\(\): mf.h=0.075 is shorter than 2 sampling "
+                                         r"intervals.*h must cover at least 2 samples"):
+        mfmjax.identify(sig, Structure(2, 0), ModulatingFunction(3, 3, 1.5 * DT))
+
+
+def test_identify_eta_nan(data):
+    _, sig = data
+    with pytest.raises(ValueError, match=r"identify\(\): eta has a NaN or inf value"):
+        mfmjax.identify(sig, Structure(2, 0), ModulatingFunction(3, 3, 4.0),
+                        eta=[1.0, NAN, 1.0, 1.0])
+
+
+# -- search, best, refine, output_error, scores ----------------------------------------------
+
+
+@pytest.mark.parametrize("kw,err,match", [
+    (dict(n=2.5, h=4.0), ValueError, r"search\(\): n must be an integer \(got n=2.5\)"),
+    (dict(n=2, h="4"), TypeError, r"search\(\): h must be a number or a sequence of numbers, "
+                                  "got the string"),
+    (dict(n=2, h=[4.0, NAN]), ValueError, r"h\[1\] must be a finite number"),
+    (dict(n=2, h=1.5 * DT), ValueError, r"h=0.075 is shorter than 2 sampling intervals"),
+    (dict(n=2, h=4.0, N=True), TypeError, r"N must be a number, got bool"),
+    (dict(n=2, h=4.0, validate=NAN), TypeError, r"validate must be a pair \(start, end\)"),
+    (dict(n=2, h=4.0, validate=(0.0, INF)), ValueError, r"validate\[1\] must be a finite"),
+    (dict(n=2, h=4.0, validate=(1.0,)), ValueError, r"got 1 value\(s\)"),
+    (dict(n=2, h=4.0, observer_window=NAN), ValueError, r"observer_window must be > 0"),
+    (dict(n=2, h=4.0, chunk_size=2.5), ValueError, r"chunk_size must be an integer"),
+])
+def test_search_refuses(data, kw, err, match):
+    _, sig = data
+    with pytest.raises(err, match=match):
+        mfmjax.search(sig, **kw)
+
+
+def test_best_out_of_range(data):
+    _, sig = data
+    res = mfmjax.search(sig, n=2, N=3, M=3, h=4.0)
+    assert res.best(len(res) - 1).n == 2
+    with pytest.raises(ValueError, match=rf"best\(\): i must be an integer in \[0, "
+                                         rf"{len(res) - 1}\] \(got i=999\)"):
+        res.best(999)
+    with pytest.raises(TypeError, match=r"best\(\): i must be a number, got str"):
+        res.best("0")
+
+
+@pytest.mark.parametrize("kw,err,match", [
+    (dict(vary="h"), TypeError, r"refine\(\): vary must be a sequence of names, not the string "
+                                r"'h'; write vary=\('h',\)"),
+    (dict(vary=("h", "q")), ValueError, r"unknown vary entry 'q'"),
+    (dict(vary=("h",), bounds={"h": (NAN, 5.0)}), ValueError,
+     r"bounds\['h'\] lo has a NaN or inf value; give finite bounds"),
+    (dict(vary=("h",), bounds={"h": 5.0}), ValueError, r"bounds\['h'\] must be a pair"),
+    (dict(vary=("h",), max_steps=-1), ValueError, r"max_steps must be an integer >= 1 "
+                                                  r"\(got max_steps=-1\)"),
+    (dict(vary=("h",), rtol=NAN), ValueError, r"rtol must be > 0 and finite"),
+    (dict(vary=("h",), validate=3.0), TypeError, r"validate must be a pair"),
+])
+def test_refine_refuses(data, fitted, kw, err, match):
+    _, sig = data
+    with pytest.raises(err, match=match):
+        mfmjax.refine(sig, fitted, **kw)
+
+
+@pytest.mark.parametrize("kw,err,match", [
+    (dict(max_steps=-1), ValueError, r"output_error\(\): max_steps must be an integer >= 1"),
+    (dict(window=(0.0, NAN)), ValueError, r"window\[1\] must be a finite number"),
+    (dict(window=2.0), TypeError, r"window must be a pair"),
+])
+def test_output_error_refuses(data, fitted, kw, err, match):
+    _, sig = data
+    with pytest.raises(err, match=match):
+        mfmjax.output_error(sig, fitted, **kw)
+
+
+@pytest.mark.parametrize("kw,err,match", [
+    (dict(h=NAN, N=3, M=3), ValueError, r"scores\(\): h must be > 0 and finite"),
+    (dict(h="4", N=3, M=3), TypeError, r"h must be a number or a sequence"),
+    (dict(h=4.0, N=3, M=3, validate=(INF, 5.0)), ValueError, r"validate\[0\] must be a finite"),
+])
+def test_scores_refuses(data, kw, err, match):
+    _, sig = data
+    with pytest.raises(err, match=match):
+        mfmjax.scores(sig, Structure(2, 0), **kw)
+
+
+# -- observers, simulate ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("window,err,match", [
+    (NAN, TypeError, r"observe\(\): window must be a pair \(start, end\) of times, got float"),
+    (3.0, TypeError, r"window must be a pair"),
+    ((1.0,), ValueError, r"window must be a pair \(start, end\) of times, got 1 value"),
+    ((0.0, NAN), ValueError, r"window\[1\] must be a finite number \(got window\[1\]=nan\)"),
+    ((0.0, INF), ValueError, r"window\[1\] must be a finite number"),
+    ((5.0, 1.0), ValueError, r"window must have start < end"),
+])
+def test_observe_window_refuses(data, window, err, match):
+    model, sig = data
+    with pytest.raises(err, match=match):
+        mfmjax.observe(model, sig, window)
+
+
+def test_moving_final_states_refuses(data):
+    model, sig = data
+    with pytest.raises(ValueError, match=r"moving_final_states\(\): T_ob must be > 0"):
+        mfmjax.moving_final_states(model, sig, NAN, [10.0])
+    with pytest.raises(ValueError, match=r"times has a NaN or inf value"):
+        mfmjax.moving_final_states(model, sig, 5.0, [NAN])
+
+
+def test_fit_percent_of_constant_output_is_undefined():
+    with pytest.raises(ValueError, match=r"fit_percent\(\): the fit of a constant output y is "
+                                         "undefined"):
+        mfmjax.fit_percent(np.ones(10), np.zeros(10))
+    assert mfmjax.fit_percent(np.arange(4.0), np.arange(4.0)) == 100.0
+
+
+@pytest.mark.parametrize("bad,match", [
+    (NAN, r"simulate\(\): u has a NaN or inf value at index \(7,\)"),
+    (INF, r"simulate\(\): u has a NaN or inf value"),
+    (1e300, r"simulate\(\): the response overflows float64 \(largest \|u\| or \|x0\| = 1e\+300"),
+])
+def test_simulate_refuses_bad_inputs(data, bad, match):
+    model, _ = data
+    u = np.ones(40)
+    u[7] = bad
+    with pytest.raises(ValueError, match=match):
+        mfmjax.simulate(model, u, dt=DT)
+
+
+def test_simulate_unstable_model_names_the_poles():
+    unstable = mfmjax.Model.from_coefficients([-2.0, -1.0, 1.0], [[1.0]])  # poles 2 and -1
+    with pytest.raises(ValueError, match=r"model is unstable \(poles with positive real part: "
+                                         r"2\)"):
+        mfmjax.simulate(unstable, np.ones(5000), dt=0.1)
+
+
+def test_simulate_refuses_bool_dt_and_transposed_u(data):
+    model, _ = data
+    with pytest.raises(TypeError, match=r"simulate\(\): dt must be a number, got bool"):
+        mfmjax.simulate(model, np.ones(10), dt=True)
+    with pytest.raises(ValueError, match=r"u must have shape \(T, 1\).*transpose it"):
+        mfmjax.simulate(model, np.ones((1, 10)), dt=DT)
+
+
+# -- x64 ----------------------------------------------------------------------------------------
+
+
+def test_every_entry_refuses_float32_mode(data, fitted):
+    model, sig = data
+    mf = ModulatingFunction(3, 3, 4.0)
+    calls = {
+        "Signals": lambda: Signals(np.ones(10), dt=1.0),
+        "simulate": lambda: mfmjax.simulate(model, np.ones(10), dt=DT),
+        "observe": lambda: mfmjax.observe(model, sig),
+        "identify": lambda: mfmjax.identify(sig, Structure(2, 0), mf),
+        "search": lambda: mfmjax.search(sig, n=2, h=4.0),
+        "refine": lambda: mfmjax.refine(sig, fitted),
+        "output_error": lambda: mfmjax.output_error(sig, fitted),
+        "scores": lambda: mfmjax.scores(sig, Structure(2, 0), h=4.0, N=3, M=3),
+        "OnlineConfig": lambda: OnlineConfig(dt=1.0, n_inputs=1),
+    }
+    jax.config.update("jax_enable_x64", False)
+    try:
+        for name, call in calls.items():
+            with pytest.raises(RuntimeError, match=rf"{name}\(\): JAX float64 mode is off.*"
+                                                   r'jax.config.update\("jax_enable_x64", True\)'):
+                call()
+    finally:
+        jax.config.update("jax_enable_x64", True)
+
+
+# -- the on-line identifier -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kw,err,match", [
+    (dict(h=NAN), ValueError, r"OnlineConfig\(\): h must be > 0 and finite \(got h=nan\)"),
+    (dict(h=(50.0, 1.0)), ValueError, r"h=1 is shorter than 2 sampling intervals"),
+    (dict(N=0.5), ValueError, r"OnlineConfig\(\): N must be an integer \(got N=0.5\)"),
+    (dict(n=[]), ValueError, r"OnlineConfig\(\): the n grid is empty"),
+    (dict(n=[0]), ValueError, r"OnlineConfig\(\): n\[0\] must be an integer >= 1"),
+    (dict(output_rule="quartic"), ValueError, r"unknown output_rule 'quartic'; use one of"),
+    (dict(eta=[1.0, 1.0, 1.0]), ValueError, r"eta must have one entry per parameter of the "
+                                            r"largest candidate \(9: .*got 3"),
+    (dict(interval=1e9), ValueError, r"sample buffer would hold 8e\+09 samples.*GiB"),
+    (dict(interval=NAN), ValueError, r"interval must be > 0 and finite"),
+    (dict(dt=True), TypeError, r"dt must be a number, got bool"),
+    (dict(n_start=2.5), ValueError, r"n_start must be an integer"),
+    (dict(N=(1,), M=(1,)), ValueError, r"every candidate has N < n or M < n"),
+])
+def test_online_config_refuses(kw, err, match):
+    with pytest.raises(err, match=match):
+        OnlineConfig(**{"dt": 1.0, "n_inputs": 2, **kw})
+
+
+def test_online_config_accepts_a_matching_eta():
+    cfg = OnlineConfig(dt=1.0, n_inputs=2, eta=np.ones(9))  # n_max 3 + 1, 2 x (1 + 1), offset
+    assert cfg.eta == (1.0,) * 9
+
+
+def _small_config():
+    return OnlineConfig(dt=1.0, n_inputs=2, n=(2,), intersample=("foh", "zoh"))
+
+
+def test_update_refuses_transposed_and_3d_u():
+    state = mfmjax.online.init(_small_config())
+    t = np.arange(5.0)
+    with pytest.raises(ValueError, match=r"need u \(P, 2\) = \(5, 2\).*got shape \(2, 5\); "
+                                         r"transpose it"):
+        mfmjax.online.update(state, t, np.zeros(5), np.zeros((2, 5)))
+    with pytest.raises(ValueError, match=r"update\(\): u must be 0-D or 1-D or 2-D, got shape"):
+        mfmjax.online.update(state, t, np.zeros(5), np.zeros((5, 2, 1)))
+    with pytest.raises(ValueError, match=r"need u \(P, 2\) = \(5, 2\)"):
+        mfmjax.online.update(state, t, np.zeros(5), np.zeros(10))  # flat: refused, not reshaped
+    with pytest.raises(TypeError, match=r"update\(\): y is a bool array"):
+        mfmjax.online.update(state, t, np.zeros(5) > 0, np.zeros((5, 2)))
+    # one sample with K inputs may be given flat: (K,) is unambiguous when P = 1
+    state, _ = mfmjax.online.update(state, [0.0], [1.0], [2.0, 3.0])
+    assert state.buf_u[0].tolist() == [2.0, 3.0]
+
+
+def test_gap_longer_than_buffer_resets_history():
+    cfg = _small_config()
+    state = mfmjax.online.init(cfg)
+    rng = np.random.default_rng(0)
+    state, _ = mfmjax.online.update(state, np.arange(300.0), rng.standard_normal(300),
+                                    rng.standard_normal((300, 2)))
+    late = 300.0 + 1e8
+    state, out = mfmjax.online.update(state, [late], [0.5], [[0.1, 0.2]])
+    # the partial interval closes, then ONE event covers the whole gap (not 400,000 of them)
+    assert [e["interval"] for e in out.events] == [1, 2]
+    gap = out.events[1]
+    assert gap["action"].startswith("gap:") and "buffered history reset" in gap["action"]
+    S = cfg.samples
+    assert gap["gap_intervals"] == int(late) // S - 2
+    assert out.t.shape == (S,)  # only the interval that really closed is emitted
+    assert state.buf_y.shape == (cfg.buffer,) and int(state.n_seen) == int(late) + 1
+    assert int(state.n_closed) == int(late) // S
+    assert np.count_nonzero(np.isfinite(state.buf_y)) == 1  # only the new sample survives
+    assert not np.any(state.iv)  # the interval statistics were reset with the buffer
+    # the stream goes on normally after the jump
+    t = late + 1 + np.arange(2 * S)
+    state, out = mfmjax.online.update(state, t, np.zeros(t.size), np.zeros((t.size, 2)))
+    assert len(out.events) == 2 and not any(e["action"].startswith("gap") for e in out.events)
+
+
+def test_gap_within_the_buffer_is_filled_with_nan():
+    cfg = _small_config()
+    state = mfmjax.online.init(cfg)
+    state, _ = mfmjax.online.update(state, np.arange(10.0), np.zeros(10), np.zeros((10, 2)))
+    state, out = mfmjax.online.update(state, [10.0 + 3 * cfg.samples], [0.0], [[0.0, 0.0]])
+    assert len(out.events) == 3 and all(not e["valid"] for e in out.events)
+    assert not any(e["action"].startswith("gap") for e in out.events)
+
+
+def test_spike_scores_rule():
+    x = np.linspace(0.0, 1.0, 200)
+    rng = np.random.default_rng(1)
+    smooth = {
+        "step": np.where(x < 0.5, 0.0, 10.0),
+        "ramp": 3.0 * x,
+        "sine, 25 samples per period": np.sin(2 * np.pi * 8 * x),
+        "noisy step": np.where(x < 0.3, 1.0, 2.0) + 0.01 * rng.standard_normal(200),
+        "exponential transient": np.where(x < 0.4, 0.0, 1 - np.exp(-(x - 0.4) * 40)),
+    }
+    for name, sig in smooth.items():
+        assert spike_scores(sig).max() < OUTLIER_Z, name
+    for name, sig in smooth.items():
+        spiked = sig.copy()
+        spiked[100] += 500.0
+        z = spike_scores(spiked)
+        assert int(np.argmax(z)) == 100 and z[100] > OUTLIER_Z, name
+
+
+def test_first_window_with_a_spike_is_refused():
+    t, y, u, _ = mfmjax.datasets.switching_experiment()
+    S = 250
+    y = y.copy()
+    y[1000] += 500.0  # a 500 degC spike inside the first identification window (0 .. 8 S)
+    ident = mfmjax.OnlineIdentifier(_small_config())
+    n = 8 * S
+    for c0 in range(0, n, 500):
+        ident.update(t[c0: c0 + 500], y[c0: c0 + 500], u[c0: c0 + 500])
+    first = ident.events[7]  # where the clean run adopts its first model (test_online)
+    assert first["action"].startswith("refused: outlier in the identification window")
+    assert "t = 1000" in first["action"] and not ident.models
+    assert math.isnan(float(ident.state.model["op_time"]))
