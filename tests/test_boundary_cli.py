@@ -4,6 +4,7 @@ paths. The cases are those of issue 16."""
 
 import importlib
 import json
+import os
 import subprocess
 import sys
 
@@ -446,3 +447,214 @@ def test_daisy_and_tests_honour_mfmjax_data(tmp_path, monkeypatch):
     finally:
         monkeypatch.delenv("MFMJAX_DATA")
         importlib.reload(conftest)
+
+
+# -- property: random option values never give a traceback ---------------------------------------
+# Each numeric option of each subcommand gets random text (finite, huge, tiny, negative, NaN,
+# inf, lists, ranges, garbage) through the real parser, checks, file reading and object
+# construction (Signals, Structure, ModulatingFunction, OnlineConfig, the on-line identifier).
+# The numerical cores (identify, search, observe, the forehearth simulation, the demo) are
+# replaced by stubs that return a fixed result of the right shape: each new value compiles a new
+# program there (10-40 s each on this CPU), and their own argument checks are fuzzed directly in
+# tests/test_fuzz.py. Property: exit 0, or exit 2 with exactly one "error: " line on stderr;
+# never exit 1, never a traceback. Example counts were profiled: about 0.1 s each.
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_ODD = ["", " ", "nan", "NaN", "inf", "-inf", "1e999", "1e9", "1e300", "1e-320", "0", "-0", "-1",
+        "2.5", "3", "x", "1,2", "1,", ",", "0,inf", "nan,1", "1:3", "3:1", "1:", "1:2:3", "1;2",
+        "0;0;0", "2,1", "1e5", "16", "250"]
+TEXT = st.one_of(
+    st.sampled_from(_ODD),
+    st.floats(0.01, 20.0).map(lambda v: repr(round(v, 2))),  # mostly valid values
+    st.integers(0, 8).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.integers(-(10**12), 10**12).map(str),
+    st.lists(st.floats(-1e4, 1e4), max_size=3).map(lambda v: ",".join(repr(x) for x in v)),
+    st.text("0123456789.,:;-+eE naif", max_size=8),
+)
+FUZZ = settings(max_examples=int(os.environ.get("MFMJAX_FUZZ_EXAMPLES", 60)), deadline=None,
+                derandomize=not os.environ.get("MFMJAX_FUZZ_EXAMPLES"),
+                suppress_health_check=[HealthCheck.function_scoped_fixture,
+                                       HealthCheck.too_slow])
+
+
+class _FakeResult:
+    compile_s = run_s = 0.0
+
+    def __init__(self, model):
+        self.model = model
+
+    def __len__(self):
+        return 1
+
+    def best(self, i=0):
+        return self.model
+
+    def table(self, top=10):
+        return "rank ..."
+
+    def to_dict(self, top=None):
+        return {"candidates": 1, "ranked": [self.model.to_dict()]}
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fuzz")
+    rng = np.random.default_rng(0)
+    T = 40  # fewer samples than one on-line interval (16 samples at least): no compilation
+    t = 0.05 * np.arange(T)
+    u = rng.standard_normal((T, 2))
+    y = np.cumsum(u[:, 0]) * 0.05
+    rec = _write_csv(d / "tiny.csv", ["t", "y", "u1", "u2"], [t, y, u[:, 0], u[:, 1]])
+    model = mfmjax.Model.from_coefficients([2.0, 1.0], [[1.0], [0.5]],
+                                           intersample=("foh", "foh"))
+    mpath = d / "m.json"
+    mfmjax.save_model(model, mpath)
+    return {"rec": str(rec), "model": str(mpath), "dir": d, "fake": model}
+
+
+@pytest.fixture
+def stubbed(tiny, monkeypatch):
+    from mfmjax import _demo, _observers
+    from mfmjax import datasets as ds
+
+    fake = tiny["fake"]
+
+    def identify(sig, structure, mf, *a, **k):
+        assert isinstance(sig, mfmjax.Signals) and isinstance(mf, mfmjax.ModulatingFunction)
+        return fake
+
+    def search(sig, progress=None, **kw):
+        assert isinstance(sig, mfmjax.Signals)
+        return _FakeResult(fake)
+
+    class _Obs:
+        def __init__(self, n):
+            self.y_sim, self.E = np.zeros(n), 0.0
+            self.x_initial = self.x_final = np.zeros(1)
+
+    def observe(model, sig, window=None, **k):
+        _, length, _ = _observers.validation_window(sig, window, None, model.n, "observe",
+                                                     "window")
+        return _Obs(length)
+
+    def forehearth(experiment, seed=0):
+        if experiment not in (1, 2):
+            raise ValueError("forehearth(): experiment must be 1 or 2")
+        z = np.zeros(3)
+        return {"t": z, "y": z, "u": np.zeros((3, 2)), "pull": z, "delay": z,
+                "names": ["a", "b", "c"]}
+
+    monkeypatch.setattr(mfmjax, "identify", identify)
+    monkeypatch.setattr(mfmjax, "search", search)
+    monkeypatch.setattr(mfmjax, "observe", observe)
+    monkeypatch.setattr(ds, "forehearth", forehearth)
+    monkeypatch.setattr(_demo, "demo", lambda out, horizon=None: None)
+    return tiny
+
+
+def _check_property(argv):
+    import contextlib
+    import io
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = main(argv)
+    text = err.getvalue()
+    from hypothesis import event
+
+    event(f"exit {rc}")
+    assert "Traceback" not in text, (argv, text)
+    lines = [ln for ln in text.splitlines() if ln.strip()]
+    if rc == 2:
+        errors = [ln for ln in lines if not ln.startswith("warning: ")]
+        assert len(errors) == 1 and errors[0].startswith("error: "), (argv, text)
+    else:
+        assert rc == 0, (argv, rc, text)
+
+
+def _fuzzed(options):
+    """One or two of `options` with random text; the others keep their valid defaults."""
+    return st.lists(st.tuples(st.sampled_from(options), TEXT), min_size=1, max_size=2)
+
+
+def _argv(base, defaults: dict, fuzzed):
+    values = {**defaults, **dict(fuzzed)}
+    argv = list(base)
+    for opt, val in values.items():
+        if val is not None:
+            argv.append(f"{opt}={val}")  # '=' lets values starting with '-' reach the checks
+    return argv
+
+
+DATA = ["--output", "y", "--inputs", "u1,u2"]
+TIME = {"--time": "t"}
+
+
+def _time(fuzzed):  # --dt replaces --time when it is fuzzed (they exclude each other)
+    return {} if any(opt == "--dt" for opt, _ in fuzzed) else TIME
+
+
+IDENT = {"--n": "1", "--m": "0,0", "--N": "3", "--M": "3", "--h": "0.5", "--delays": None,
+         "--dt": None}
+
+
+@FUZZ
+@given(fuzzed=_fuzzed(list(IDENT)))
+def test_fuzz_identify(stubbed, fuzzed):
+    _check_property(_argv(["identify", stubbed["rec"], *DATA],
+                          {**IDENT, **_time(fuzzed)}, fuzzed))
+
+
+SEARCH = {"--n": None, "--m": None, "--N": None, "--M": None, "--h": "0.5", "--top": None,
+          "--validate": None, "--delays": None, "--dt": None}
+
+
+@FUZZ
+@given(fuzzed=_fuzzed(list(SEARCH)))
+def test_fuzz_search(stubbed, fuzzed):
+    _check_property(_argv(["search", stubbed["rec"], *DATA], {**SEARCH, **_time(fuzzed)}, fuzzed))
+
+
+VALIDATE = {"--window": None, "--delays": None, "--dt": None}
+
+
+@FUZZ
+@given(fuzzed=_fuzzed(list(VALIDATE)))
+def test_fuzz_validate(stubbed, fuzzed):
+    _check_property(_argv(["validate", stubbed["rec"], *DATA, "--model", stubbed["model"]],
+                          {**VALIDATE, **_time(fuzzed)}, fuzzed))
+
+
+ONLINE_KEYS = ["interval", "n_start", "n_reident", "T_obfin", "T_obinit", "tr_corr", "steady_rel",
+               "h", "N", "M", "n", "delays", "eta"]
+TOML_VALUE = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(
+        lambda v: {"nan": "nan", "inf": "inf", "-inf": "-inf"}.get(repr(v), repr(v))),
+    st.integers(-(10**12), 10**12).map(str),
+    st.integers(0, 600).map(str),
+    st.lists(st.floats(-1e3, 1e3), max_size=3).map(lambda v: "[" + ", ".join(map(repr, v)) + "]"),
+    st.sampled_from(["true", '"x"', "[]", "[0]", "1e9", "16", "0.8", "[2.5]", "[2, 3]"]),
+)
+
+
+@FUZZ
+@given(settings_=st.dictionaries(st.sampled_from(ONLINE_KEYS), TOML_VALUE, max_size=2),
+       fuzzed=st.lists(st.tuples(st.sampled_from(["--delays", "--dt"]), TEXT), max_size=1))
+def test_fuzz_online(stubbed, settings_, fuzzed):
+    cfg = stubbed["dir"] / "fuzz.toml"
+    cfg.write_text("".join(f"{k} = {v}\n" for k, v in settings_.items()))
+    _check_property(_argv(["online", stubbed["rec"], *DATA, "--config", str(cfg), "--json"],
+                          _time(fuzzed), fuzzed))
+
+
+@FUZZ
+@given(fuzzed=_fuzzed(["--experiment", "--seed", "--horizon"]))
+def test_fuzz_dataset_and_demo(stubbed, fuzzed):
+    out = str(stubbed["dir"] / "d.csv")
+    data = [(o, v) for o, v in fuzzed if o != "--horizon"]
+    demo = [(o, v) for o, v in fuzzed if o == "--horizon"]
+    _check_property(_argv(["dataset", "forehearth", "-o", out], {}, data))
+    _check_property(_argv(["demo", "--out", str(stubbed["dir"] / "demo")], {}, demo))
