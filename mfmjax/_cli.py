@@ -659,7 +659,7 @@ def main(argv=None) -> int:
                              "dataset, demo (see --help)")
         for name in ("N", "M"):
             val = getattr(args, name, None)
-            if isinstance(val, float) and val == int(val):
+            if isinstance(val, float) and abs(val) < 2**53 and val == int(val):
                 setattr(args, name, int(val))
         if not no_cache:
             from ._cache import enable_compile_cache
