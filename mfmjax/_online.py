@@ -790,7 +790,7 @@ def _load(path):
         raise ValueError(f"load(): {path} is not an mfmjax on-line checkpoint "
                          f"(v{CHECKPOINT_VERSION})") from None
     except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, UnicodeDecodeError,
-            RuntimeError) as err:  # zlib / zip / npy header errors of a damaged file
+            RuntimeError, TypeError, AttributeError) as err:  # a damaged file, or a bare .npy
         raise ValueError(f"{fail} ({type(err).__name__}: {str(err)[:80]})") from None
     if digest is None or digest != _digest(header_text, arrays):
         raise ValueError(f"load(): {path} fails its SHA-256 checksum (corrupted); {redo}")

@@ -198,6 +198,10 @@ def test_other_version_or_format_refused(tmp_path):
         np.savez(fh, x=np.zeros(2))
     with pytest.raises(ValueError, match="not an mfmjax on-line checkpoint"):
         mfmjax.online.load(path)
+    with open(path, "wb") as fh:  # a bare .npy, not an archive
+        np.save(fh, np.zeros(2))
+    with pytest.raises(ValueError, match="truncated or corrupted"):
+        mfmjax.online.load(path)
     with pytest.raises(ValueError, match="cannot read"):
         mfmjax.online.load(tmp_path / "missing.npz")
 
