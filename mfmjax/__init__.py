@@ -31,7 +31,7 @@ from ._online import OnlineConfig as OnlineConfig  # noqa: E402
 from ._online import OnlineIdentifier as OnlineIdentifier  # noqa: E402
 from ._online import OnlineOutputs as OnlineOutputs  # noqa: E402
 from ._online import OnlineState as OnlineState  # noqa: E402
-from ._output_error import OutputError as OutputError  # noqa: E402
+from ._output_error import OutputErrorFit as OutputErrorFit  # noqa: E402
 from ._output_error import output_error as output_error  # noqa: E402
 from ._persist import load_model as load_model  # noqa: E402
 from ._persist import save_model as save_model  # noqa: E402
@@ -57,7 +57,7 @@ __version__ = "0.1.0"
 
 __all__ = [  # the public names (tests/test_fuzz.py covers each one)
     "Model", "ModulatingFunction", "Observation", "OnlineConfig", "OnlineIdentifier",
-    "OnlineOutputs", "OnlineState", "OutputError", "Refinement", "SearchResult", "Signals",
+    "OnlineOutputs", "OnlineState", "OutputErrorFit", "Refinement", "SearchResult", "Signals",
     "StateSpace", "Status", "Structure", "closed_form", "constrained_solve", "cramer_rao",
     "datasets", "enable_compile_cache", "final_state", "fit_percent", "gram", "identify",
     "initial_state", "kernel_weights", "load_model", "modulated_signals", "moving_final_states",

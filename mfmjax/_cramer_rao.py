@@ -10,10 +10,12 @@ from ._model import Model
 from ._output_error import free_parameters, simulated_output
 
 
-def cramer_rao(model: Model, u, dt: float, x0, sigma: float, *, length: int | None = None):
+def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | None = None):
     r"""Cramer-Rao standard deviations of the free parameters (and x0) of `model` for white
     output noise of standard deviation `sigma`: $\sqrt{\mathrm{diag}(\sigma^2 (J^T J)^{-1})}$,
     $J = \partial y_{sim} / \partial(\theta, x_0)$ by `jax.jacfwd` of the exact simulation.
+    Arguments in the order of `simulate(model, u, x0, dt=...)`: the experiment `u` (T, K) from
+    state `x0`, sampled every `dt`; `length` limits it to the first samples.
 
     **Returns:** (names, std of the parameters).
     """

@@ -49,8 +49,7 @@ def _check(signals: Signals, structure: Structure, mf: ModulatingFunction, eta):
             )
     p = structure.n_params + int(signals.offset)
     check_record_length(signals, mf, p)
-    if eta is None:
-        eta = jnp.ones(p, dtype=jnp.float64)
+    eta = np.ones(p) if eta is None else eta
     eta = jnp.asarray(eta, dtype=jnp.float64)
     if eta.shape != (p,):
         raise ValueError(

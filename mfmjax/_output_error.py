@@ -9,6 +9,7 @@ covariance $\sigma^2 (J^T J)^{-1}$ and standard errors.
 from __future__ import annotations
 
 import math
+import warnings
 
 import equinox as eqx
 import jax
@@ -23,7 +24,7 @@ from ._signals import Signals
 from ._simulate import forced_response
 
 
-class OutputError(eqx.Module):
+class OutputErrorFit(eqx.Module):
     """Result of `output_error` (parameters ordered as `names`)."""
 
     model: Model
@@ -38,6 +39,37 @@ class OutputError(eqx.Module):
     E: float
     result: str
     steps: int
+    converged: bool  # the solver met its tolerances (not only ran out of steps while improving)
+    stabilised: bool  # the start had poles with Re > 0; they were mirrored before the fit
+
+    def summary(self) -> str:
+        """Parameters with standard errors, E before and after, and the solver's verdict."""
+        lines = [f"output-error fit  n={self.model.n}  m={list(self.model.m)}",
+                 f"{'parameter':<12}{'value':>16}{'std error':>14}"]
+        for name, v, e in zip(self.names, self.theta, self.std_errors):
+            lines.append(f"{name:<12}{v:>16.6e}{e:>14.3e}")
+        lines.append(f"E: {self.E_start:.6e} (start) -> {self.E:.6e}")
+        if self.stabilised:
+            lines.append("start was unstable: its right-half-plane poles were mirrored first")
+        lines.append(("converged" if self.converged else
+                      f"NOT CONVERGED ({self.result} after {self.steps} steps): the estimate is "
+                      "the best iterate; raise max_steps or start from a better model")
+                     + f" ({self.result})")
+        return "\n".join(lines)
+
+
+def stabilised(model: Model) -> tuple[Model, bool]:
+    """`model` with every pole of A(s) in the right half plane mirrored into the left one
+    (|A| on the imaginary axis and the b's kept), and whether anything changed: an unstable
+    MFM start cannot seed a simulation-residual fit on a long window."""
+    a = np.asarray(model.a, dtype=np.float64)
+    roots = np.roots(a[::-1])
+    if roots.size == 0 or np.all(roots.real < 0):
+        return model, False
+    mirrored = np.where(roots.real >= 0, -np.abs(roots.real) - 1e-9 * np.abs(roots) + 1j * roots.imag,
+                        roots)
+    a_new = np.real(np.poly(mirrored))[::-1] * a[-1]
+    return eqx.tree_at(lambda m: m.a, model, jnp.asarray(a_new / a_new[-1])), True
 
 
 def free_parameters(model: Model):
@@ -115,7 +147,7 @@ def simulated_output(model, u, dt, start, length):
 def output_error(
     signals: Signals, model: Model, *, window=None, max_steps: int = 100, rtol: float = 1e-10,
     atol: float = 1e-12,
-) -> OutputError:
+) -> OutputErrorFit:
     r"""Output-error (simulation-residual) estimate started from `model` (the MFM estimate).
 
     Minimises $\sum_k (y_k - y_{sim,k}(\theta, x_0))^2$ on `window` (default: the record) over
@@ -124,9 +156,11 @@ def output_error(
     from the initial-state observer, eq. 14). This removes the equation-error bias of MFM under
     output noise. Parameters are scaled by their starting magnitude.
 
-    **Returns:** `OutputError` with the refined model, x0, standard errors and the Gauss-Newton
+    **Returns:** `OutputErrorFit` with the refined model, x0, standard errors and the Gauss-Newton
     covariance $\hat\sigma^2 (J^T J)^{-1}$ ($\hat\sigma^2$ = residual sum of squares / (N - p)).
-    A failed solve returns the starting model with the solver's code in `result`.
+    A failed solve returns the starting model with the solver's code in `result`. A fit that did
+    not converge says so: `converged` is False, `summary()` prints NOT CONVERGED, and the call
+    warns. An unstable start has its right-half-plane poles mirrored first (`stabilised`).
     """
     from ._boundary import check_output_error
     from ._observers import observe
@@ -135,6 +169,8 @@ def output_error(
 
     if not isinstance(model, Model):
         raise TypeError("output_error(): model must be a Model")
+    original = model
+    model, was_unstable = stabilised(model)
     obs = observe(model, signals, window)
     k0 = 0 if window is None else round((float(window[0]) - signals.t0) / signals.dt)
     length = int(obs.y_sim.shape[0])
@@ -165,8 +201,14 @@ def output_error(
         np.asarray(r0) ** 2)) / dof
     cov = sigma2 * np.linalg.pinv(Jp.T @ Jp)
     new = with_parameters(model, jnp.asarray(theta)) if ok else model
-    return OutputError(new, model, x0, names, theta, np.sqrt(np.diag(cov))[:p_theta],
-                       cov[:p_theta, :p_theta], sigma2, E0, E1, code, int(n_steps))
+    converged = ok and code == "successful"
+    if not converged:
+        warnings.warn(f"output_error(): not converged ({code} after {int(n_steps)} steps); the "
+                      f"result is {'the best iterate' if ok else 'the start'}: raise max_steps or "
+                      "start from a better model (see OutputErrorFit.converged)", stacklevel=2)
+    return OutputErrorFit(new, original, x0, names, theta, np.sqrt(np.diag(cov))[:p_theta],
+                          cov[:p_theta, :p_theta], sigma2, E0, E1, code, int(n_steps),
+                          bool(converged), bool(was_unstable))
 
 
 @eqx.filter_jit

@@ -32,17 +32,17 @@ from ._modulating import ModulatingFunction, phi_scaled
 
 RULES = ("zoh", "foh", "cubic")
 _GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(12)
-_EDGE = 1e-9  # tolerance (in samples) on ceil((tau + h)/dt) against rounding
+EDGE = 1e-9  # tolerance (in samples) on ceil((tau + h)/dt) against rounding
 
 
 def support_samples(span, dt: float):
     r"""Index of the oldest sample the kernel touches: $\lceil (\tau + h)/dt \rceil$ (int array)."""
-    return jnp.ceil(jnp.asarray(span) / dt - _EDGE).astype(jnp.int32)
+    return jnp.ceil(jnp.asarray(span) / dt - EDGE).astype(jnp.int32)
 
 
 def kernel_length(span_max: float, dt: float) -> int:
     """Static kernel length for supports up to `span_max` = max(tau + h)."""
-    return int(math.ceil(span_max / dt - _EDGE)) + 1
+    return int(math.ceil(span_max / dt - EDGE)) + 1
 
 
 MIN_KERNEL_BUCKET = 16  # shortest compiled kernel length

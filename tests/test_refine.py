@@ -119,7 +119,7 @@ def test_output_error_removes_bias_and_reports_errors(noisy):
     err = np.abs(oe.theta - truth)
     assert np.all(err < 4 * oe.std_errors)  # within 4 standard errors
     assert oe.sigma2 == pytest.approx(sd**2, rel=0.15)  # residual variance = the noise
-    names, crb = mfmjax.cramer_rao(oe.model, sig.u, sig.dt, oe.x0, sd)
+    names, crb = mfmjax.cramer_rao(oe.model, sig.u, oe.x0, dt=sig.dt, sigma=sd)
     np.testing.assert_allclose(oe.std_errors, crb * np.sqrt(oe.sigma2) / sd, rtol=1e-6)
 
 
@@ -140,7 +140,7 @@ def test_cramer_rao_against_numpy_finite_differences():
     u = np.stack([np.sin(0.7 * t), np.repeat(np.random.default_rng(0).normal(size=T // 20), 20)],
                  1)
     x0 = np.array([0.2, -0.1])
-    names, crb = mfmjax.cramer_rao(model, u, dt, x0, 0.05)
+    names, crb = mfmjax.cramer_rao(model, u, x0, dt=dt, sigma=0.05)
     # reference: scipy lsim, central differences over (a_0, a_1, b_10, b_20, x0)
     base = np.array([0.5, 1.5, 0.5, 0.3, *x0])
 

@@ -66,7 +66,8 @@ def test_identify_new_settings_inside_a_bucket_compile_once(record):
     # (exact: the same program on the same values)
     again = mfmjax.identify(record, ST, ModulatingFunction(*settings[7]))
     np.testing.assert_array_equal(np.asarray(again.a), np.asarray(models[6].a))
-    assert any("_identify" in name for name in first) or first == []  # cached from elsewhere
+    # at most the one program of this bucket (none if an earlier test compiled it)
+    assert sum("identify_core" in name for name in first) <= 1
 
 
 def test_identify_values_equal_exact_kernel_length(record):
@@ -77,7 +78,7 @@ def test_identify_values_equal_exact_kernel_length(record):
     from mfmjax._quadrature import kernel_length
 
     mf = ModulatingFunction(4, 5, 2.6)
-    exact = identify_core(record.unlabelled(), ST.for_inputs(2), as_values(mf), jnp.ones(9),
+    exact = identify_core(record.unlabelled(), ST.for_inputs(2), as_values(mf), jnp.ones(8),
                       kernel_length(2.6, DT))
     bucketed = mfmjax.identify(record, ST, mf)
     np.testing.assert_allclose(np.asarray(bucketed.theta), np.asarray(exact.theta), rtol=1e-10)
@@ -88,7 +89,8 @@ def test_new_t0_and_names_compile_nothing(record):
     mfmjax.identify(record, ST, mf)
     mfmjax.observe(mfmjax.identify(record, ST, mf), record, (10.0, 50.0))
     relabelled = Signals(np.asarray(record.y), np.asarray(record.u), dt=DT, t0=1234.5,
-                         output_name="temperature", input_names=["valve", "pump"])
+                         intersample=record.intersample, output_name="temperature",
+                         input_names=["valve", "pump"])
     with compiles() as names:
         model = mfmjax.identify(relabelled, ST, mf)
         obs = mfmjax.observe(model, relabelled, (1234.5 + 10.0, 1234.5 + 50.0))
@@ -149,7 +151,7 @@ def test_online_identifier_compiles_its_programs_once_per_run():
     operating point included) compiles nothing."""
     t, y, u, switches = switching_experiment()
     ident = OnlineIdentifier(OnlineConfig(dt=1.0, n_inputs=2, n=(2,), intersample=("foh", "zoh")))
-    half = len(t) // 3
+    half = (len(t) // 3) // 250 * 250
     for c0 in range(0, half, 250):
         ident.update(t[c0 : c0 + 250], y[c0 : c0 + 250], u[c0 : c0 + 250])
     assert len(ident.models) >= 1

@@ -1,0 +1,54 @@
+"""Output error says when it did not converge, and recovers from an unstable start (issue 14)."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+import mfmjax
+from mfmjax import Model, Structure
+from mfmjax._output_error import stabilised
+from mfmjax.datasets import simulated_experiment
+
+TRUE = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]], intersample=["zoh"])
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    return simulated_experiment(TRUE, dt=0.05, n_samples=800, seed=2, noise_std=0.01)
+
+
+def test_stabilised_mirrors_right_half_plane_poles():
+    # (s - 1)(s + 2) = s^2 + s - 2: the pole at +1 goes to -1 -> (s + 1)(s + 2)
+    unstable = Model.from_coefficients([-2.0, 1.0, 1.0], [[1.0]])
+    fixed, changed = stabilised(unstable)
+    assert changed
+    np.testing.assert_allclose(np.asarray(fixed.a), [2.0, 3.0, 1.0], rtol=1e-8)
+    same, changed = stabilised(TRUE)
+    assert not changed and same is TRUE
+
+
+def test_not_converged_is_reported_and_warned(noisy):
+    start = mfmjax.identify(noisy, Structure(2, [0]), mfmjax.ModulatingFunction(3, 3, 2.0))
+    with pytest.warns(UserWarning, match=r"output_error\(\): not converged"):
+        fit = mfmjax.output_error(noisy, start, max_steps=1)
+    assert not fit.converged
+    assert "NOT CONVERGED" in fit.summary()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a converged fit does not warn
+        done = mfmjax.output_error(noisy, start)
+    assert done.converged and "converged" in done.summary()
+    assert "NOT" not in done.summary()
+
+
+def test_unstable_start_is_stabilised_and_fitted(noisy):
+    """An unstable start (a_1 < 0) used to raise 'overflows float64 ... shorten the window'.
+    Mirrored, it is a stable start with the same |A| on the imaginary axis; the fit then finds
+    the true parameters to the noise level (std 0.01 on an O(0.5) output, 800 samples: the
+    standard errors are ~1e-2 relative, so 5 % is a 5-sigma bound)."""
+    start = Model.from_coefficients([2.0, -3.0, 1.0], [[1.0]], intersample=["zoh"])
+    fit = mfmjax.output_error(noisy, start, max_steps=200)
+    assert fit.stabilised and fit.converged
+    assert np.isfinite(fit.E) and fit.E <= fit.E_start
+    np.testing.assert_allclose(fit.theta, [2.0, 3.0, 1.0], rtol=0.05)
+    assert "start was unstable" in fit.summary()
