@@ -291,9 +291,9 @@ def check_scores(signals, structure, *, h, N, M, delays, eta, validate, observer
         raise TypeError(f"{fn}(): structure must be a Structure, got {type(structure).__name__}")
     for name, val in (("N", N), ("M", M)):
         if not is_traced(val):
-            numbers_(fn, name, val, lo=1)
+            number(fn, name, val, lo=1)
     if not is_traced(h):
-        numbers_(fn, "h", h, lo=0, lo_open=True)
+        number(fn, "h", h, lo=0, lo_open=True)
         min_support(fn, h, signals.dt)
     if delays is not None and not is_traced(delays):
         array(fn, "delays", delays, ndim=(0, 1))
@@ -365,3 +365,22 @@ def check_rank(fn: str, i, count: int) -> int:
         raise ValueError(f"{fn}(): the search result is empty; widen the grid")
     return integer(fn, "i", i, lo=0, hi=count - 1,
                    fix=f"ranks run from 0 (best) to {count - 1}")
+
+
+def check_modulating(N, M, h, h_max) -> None:
+    """ModulatingFunction(): N, M, h are numbers or arrays of numbers (or tracers), never a bool,
+    str, None or an empty sequence; their values are checked by the constructor itself."""
+    fn = "ModulatingFunction"
+    require_x64(fn)
+    for name, val in (("N", N), ("M", M), ("h", h)):
+        if is_traced(val):
+            continue
+        if isinstance(val, (list, tuple, np.ndarray, jax.Array)):
+            arr = array(fn, name, val, finite=False)
+            if arr.size == 0:
+                raise ValueError(f"{fn}(): {name} is empty; give a number")
+        elif isinstance(val, (bool, np.bool_)) or not isinstance(val, numbers.Real):
+            raise TypeError(f"{fn}(): {name} must be a number, got {type(val).__name__} "
+                            f"{_show(val)}")
+    if h_max is not None:
+        number(fn, "h_max", h_max, lo=0, lo_open=True)

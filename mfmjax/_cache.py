@@ -89,7 +89,8 @@ def enable_compile_cache(
     """
     if os.environ.get(_OPT_OUT, "").strip().lower() in ("1", "true", "yes", "on"):
         return None
-    if not (isinstance(max_size_bytes, int) and max_size_bytes > 0):
+    if isinstance(max_size_bytes, bool) or not (isinstance(max_size_bytes, int)
+                                                and max_size_bytes > 0):
         raise ValueError(
             f"enable_compile_cache(): max_size_bytes must be a positive int (got "
             f"{max_size_bytes!r})"

@@ -75,6 +75,9 @@ class Model(eqx.Module):
 
         Coefficients are normalised to a_n = 1. Raises if a_n = 0 or the orders are invalid.
         """
+        from ._boundary import number
+
+        offset = None if offset is None else number("Model.from_coefficients", "offset", offset)
         a = np.asarray(a, dtype=np.float64)
         if a.ndim != 1 or a.size < 2:
             raise ValueError("Model.from_coefficients(): a must list a_0..a_n with n >= 1")

@@ -50,6 +50,9 @@ class ModulatingFunction(eqx.Module):
     h_max: float | None = eqx.field(static=True, default=None)
 
     def __init__(self, N, M, h, h_max: float | None = None):
+        from ._boundary import check_modulating
+
+        check_modulating(N, M, h, h_max)
         for name, val in (("N", N), ("M", M)):
             if _is_concrete(val):
                 v = float(np.max(np.asarray(val)))

@@ -261,9 +261,16 @@ def fit_percent(y, y_sim):
         if y.shape != y_sim.shape or y.size < 2:
             raise ValueError(f"fit_percent(): y and y_sim must be 1-D of equal length >= 2 "
                              f"(got shapes {y.shape} and {y_sim.shape})")
-        if not np.ptp(y) > 0:
+        if not np.any(y != y[0]):
             raise ValueError("fit_percent(): the fit of a constant output y is undefined "
                              "(||y - mean(y)|| = 0); compare E or the mean square error instead")
+        scale = max(float(np.max(np.abs(y))), float(np.max(np.abs(y_sim))), 1e-300)
+        y, y_sim = y / scale, y_sim / scale  # the norms below cannot overflow
+        spread = float(np.linalg.norm(y - np.mean(y)))
+        if not spread > 0:
+            raise ValueError("fit_percent(): the fit of an output y that is constant to float64 "
+                             "precision is undefined; compare E or the mean square error instead")
+        return jnp.asarray(100.0 * (1.0 - float(np.linalg.norm(y - y_sim)) / spread))
     y, y_sim = jnp.asarray(y), jnp.asarray(y_sim)
     spread = jnp.linalg.norm(y - jnp.mean(y))  # 0 for a constant y: fit undefined, NaN
     return 100.0 * (1.0 - jnp.linalg.norm(y - y_sim) / jnp.where(spread > 0, spread, jnp.nan))
