@@ -137,7 +137,7 @@ def _gammas(Ac, deltas):
 
 
 def _terms(Ac, modes, taus, dt):
-    """Phi (n, n) and per column the step terms (S, 3, n) of
+    r"""Phi (n, n) and per column the step terms (S, 3, n) of
     $z_{j+1} = \Phi z_j + P x_{j-d-1} + Q x_{j-d} + R x_{j-d+1}$ (delay (d + f) dt)."""
     S = len(modes)
     d, f = split_delay(taus, dt)

@@ -1,0 +1,243 @@
+"""SRIVC (`mfmjax.srivc`) against its NumPy/SciPy twin (tests/reference_srivc.py).
+
+Tolerances. The twin runs the filters as transfer functions (`lfilter`, direct form), whose
+rounding error relative to the output is about $\\kappa\\,\\epsilon$ with
+$\\kappa = \\sum|d_i| / |\\sum d_i|$ for the discrete denominator $d$ (its DC amplification);
+mfmjax runs them as a state recursion (smaller error). A relative perturbation $\\delta$ of the
+regressors moves the IV solution by at most $\\mathrm{cond}(\\hat\\Phi_{eq})\\,\\delta$, the
+condition number of the column-equilibrated instrument matrix. Hence parameters agree to
+$\\kappa\\,\\epsilon\\,\\mathrm{cond}(\\hat\\Phi_{eq})$, the covariance (an inverse of
+$\\hat\\Phi^T\\hat\\Phi$) to that times $\\mathrm{cond}(\\hat\\Phi_{eq})$ once more. On noise-free
+data the true parameters are an exact fixed point of the iteration (module docstring of
+`mfmjax._srivc`), so recovery is to rounding: $\\epsilon\\,\\sqrt{T}\\,\\kappa\\,
+\\mathrm{cond}(\\hat\\Phi_{eq})$ (rounding accumulated over T samples).
+"""
+
+import contextlib
+import logging
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import reference_srivc as ref
+from scipy import signal
+
+import mfmjax
+from mfmjax import Signals
+from mfmjax._srivc import SrivcStatus
+
+EPS = np.finfo(np.float64).eps
+T, DT = 400, 0.1
+MODES = ("foh", "zoh")
+WHOLE = np.array([0.0, 3 * DT])  # whole-sample delays (the twin takes these)
+LAGS = [0, 3]
+
+
+@contextlib.contextmanager
+def compiles():
+    """Names of the programs JAX compiles inside the block (as tests/test_settings_values.py)."""
+    names = []
+
+    class Handler(logging.Handler):
+        def emit(self, record):
+            msg = record.getMessage()
+            if msg.startswith("Compiling "):
+                names.append(msg.split()[1])
+
+    handler, logger = Handler(), logging.getLogger("jax")
+    before = jax.config.jax_log_compiles
+    jax.config.update("jax_log_compiles", True)
+    logger.addHandler(handler)
+    try:
+        yield names
+    finally:
+        logger.removeHandler(handler)
+        jax.config.update("jax_log_compiles", before)
+
+
+def _theta(model):
+    n = model.n
+    parts = [np.asarray(model.a)[:n]] + [np.asarray(b) for b in model.b]
+    if model.has_offset:
+        parts.append(np.atleast_1d(np.asarray(model.offset)))
+    return np.concatenate(parts)
+
+
+def _bounds(theta, Phih, n=2):
+    """kappa eps cond(Phi_hat_eq) and cond(Phi_hat_eq) at theta (see module docstring)."""
+    a = np.append(theta[:n], 1.0)
+    Ac = np.diag(np.ones(n - 1), 1)
+    Ac[-1] = -a[:n]
+    Ad = signal.cont2discrete((Ac, np.eye(n)[:, -1:], np.eye(n), np.zeros((n, 1))), DT)[0]
+    d = np.poly(np.linalg.eigvals(Ad)).real
+    kappa = np.sum(np.abs(d)) / abs(np.sum(d))
+    cond = np.linalg.cond(Phih / np.linalg.norm(Phih, axis=0))
+    return kappa * EPS * cond, cond
+
+
+def _coefficients(scale=1.0):
+    """n = 2, m = (1, 0): a foh and a zoh input, an offset; `scale` != 1 perturbs the truth."""
+    return [0.8 * scale, 1.2 / scale, 1.0], [[0.5 * scale, 0.3], [0.7 / scale]], 0.2 * scale
+
+
+def _record(delays=WHOLE, noise=0.1, seed=1, start_scale=1.1):
+    """Exact response plus white noise (`noise` x std(y)); a start `start_scale` off the truth."""
+    a, b, off = _coefficients()
+    true = mfmjax.Model.from_coefficients(a, b, offset=off, delays=delays, intersample=MODES)
+    rng = np.random.default_rng(seed)
+    t = np.arange(T) * DT
+    u = np.stack([np.sin(0.7 * t) + 0.5 * np.sin(1.9 * t + 1.0),
+                  np.repeat(np.random.default_rng(0).normal(size=T // 20 + 1), 20)[:T]], axis=1)
+    y = np.asarray(mfmjax.simulate(true, u, dt=DT))
+    y = y + noise * np.std(y) * rng.standard_normal(T)
+    sig = Signals(y, u, dt=DT, intersample=MODES, delays=delays, offset=True)
+    a0, b0, off0 = _coefficients(start_scale)
+    start = mfmjax.Model.from_coefficients(a0, b0, offset=off0, delays=delays, intersample=MODES)
+    return true, sig, start
+
+
+def _twin(sig, start, **kw):
+    return ref.srivc(_theta(start), np.asarray(sig.y), np.asarray(sig.u), 2, (1, 0), MODES, DT,
+                     lags=LAGS, has_offset=True, **kw)
+
+
+def _twin_step(theta, sig, lags=LAGS):
+    return ref.step(theta, np.asarray(sig.y), np.asarray(sig.u), 2, (1, 0), MODES, DT, lags, True)
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    _, sig, start = _record()
+    return sig, start
+
+
+def test_iterates_match_twin(noisy):
+    """Same iterates: same count and stopping reason, same result, covariance and E."""
+    sig, start = noisy
+    fit = mfmjax.srivc(sig, start)
+    want = _twin(sig, start)
+    assert want["status"] == 0 and 2 < want["iterations"] < 30  # a real iteration, converged
+    assert int(fit.status) == 0 and bool(fit.converged)
+    assert int(fit.iterations) == want["iterations"]
+    _, _, Ph = _twin_step(want["theta"], sig)
+    tol, cond = _bounds(want["theta"], Ph)
+    assert 1e-14 < tol < 1e-7  # an informative bound for this record
+    assert np.max(np.abs(np.asarray(fit.theta) - want["theta"]) / np.abs(want["theta"])) <= tol
+    assert np.allclose(np.asarray(fit.std_errors), want["std"], rtol=tol * cond, atol=0)
+    assert float(fit.E) == pytest.approx(want["E"], rel=tol)
+    assert fit.names == ("a_0", "a_1", "b_10", "b_11", "b_20", "offset")
+    # the returned Model carries the parameters (a_n = 1) and simulates to the same E
+    assert np.allclose(_theta(fit.model), want["theta"], rtol=tol, atol=0)
+    y = mfmjax.simulate(fit.model, sig.u, dt=DT)
+    assert float(jnp.sum((sig.y - y) ** 2) * DT) == pytest.approx(float(fit.E), rel=1e-9)
+
+
+def test_first_iterates_match_twin(noisy):
+    """After one and two IV solves (max_iter; the best iterate by simulation error is kept)."""
+    sig, start = noisy
+    for k in (1, 2):
+        with pytest.warns(UserWarning, match="max_iter"):
+            fit = mfmjax.srivc(sig, start, max_iter=k)
+        want = _twin(sig, start, max_iter=k)
+        assert want["status"] == ref.MAX_ITER and int(fit.status) == SrivcStatus.MAX_ITER
+        assert int(fit.iterations) == k
+        _, _, Ph = _twin_step(want["theta"], sig)
+        tol, _ = _bounds(want["theta"], Ph)
+        assert np.max(np.abs(np.asarray(fit.theta) - want["theta"]) / np.abs(want["theta"])) <= tol
+    assert not np.allclose(want["theta"], _theta(start))  # the second one moved
+
+
+@pytest.mark.parametrize("delays", [WHOLE, np.array([0.37 * DT, 2.6 * DT])])
+def test_noise_free_recovers_truth(delays):
+    """Whole and fractional delays, offset: the truth is an exact fixed point (rounding only)."""
+    true, sig, start = _record(delays, noise=0.0)
+    fit = mfmjax.srivc(sig, start)
+    assert bool(fit.converged)
+    _, _, Ph = _twin_step(_theta(true), sig, lags=np.round(delays / DT).astype(int))
+    tol, _ = _bounds(_theta(true), Ph)
+    err = np.max(np.abs(np.asarray(fit.theta) - _theta(true)) / np.abs(_theta(true)))
+    assert err <= tol * np.sqrt(T)
+
+
+def test_jit_equals_eager(noisy):
+    sig, start = noisy
+    eager = mfmjax.srivc(sig, start)
+    jitted = jax.jit(lambda s, m: mfmjax.srivc(s, m))(sig, start)
+    # same operations, separately compiled: rounding-level differences, bounded as in the twin
+    assert np.allclose(np.asarray(jitted.theta), np.asarray(eager.theta), rtol=1e-10, atol=0)
+    assert int(jitted.iterations) == int(eager.iterations)
+    assert int(jitted.status) == int(eager.status)
+
+
+def _stack(trees):
+    return jax.tree.map(lambda *x: jnp.stack(x), *trees)
+
+
+def test_vmap_equals_loop_and_no_recompilation():
+    """A batch of records is one compiled call: a batch, then a new batch, compile nothing new;
+    nor does a single fit on new data from a new start with new max_iter and tol."""
+    recs = [_record(seed=s, start_scale=1.05 + 0.02 * s)[1:] for s in range(6)]
+    loop = [mfmjax.srivc(s, m) for s, m in recs]
+    batched = jax.vmap(lambda s, m: mfmjax.srivc(s, m))
+    first = batched(_stack([r[0] for r in recs[:3]]), _stack([r[1] for r in recs[:3]]))
+    for k in range(3):
+        assert np.allclose(np.asarray(first.theta[k]), np.asarray(loop[k].theta), rtol=1e-10,
+                           atol=0)
+        assert int(first.iterations[k]) == int(loop[k].iterations)
+        assert np.allclose(np.asarray(first.std_errors[k]), np.asarray(loop[k].std_errors),
+                           rtol=1e-8, atol=0)
+    _, new_sig, new_start = _record(seed=99, start_scale=0.93)
+    with compiles() as names:
+        second = batched(_stack([r[0] for r in recs[3:]]), _stack([r[1] for r in recs[3:]]))
+        single = mfmjax.srivc(new_sig, new_start, max_iter=12, tol=1e-9)
+    assert names == [], f"recompiled: {names}"
+    assert np.allclose(np.asarray(second.theta[1]), np.asarray(loop[4].theta), rtol=1e-10, atol=0)
+    assert bool(single.converged)
+
+
+def test_unstable_start_gives_status_not_nan(noisy):
+    sig, start = noisy
+    bad = mfmjax.Model.from_coefficients([-0.8, 1.2, 1.0], [[0.5, 0.3], [0.7]], offset=0.2,
+                                         delays=WHOLE, intersample=MODES)  # a pole at s = +0.5
+    with pytest.warns(UserWarning, match="unstable_filter"):
+        fit = mfmjax.srivc(sig, bad)
+    assert int(fit.status) & SrivcStatus.UNSTABLE_FILTER and not bool(fit.converged)
+    assert np.all(np.isfinite(np.asarray(fit.theta)))
+    assert np.allclose(np.asarray(fit.theta), _theta(bad))  # the start, kept and flagged
+    assert int(fit.model.status) & mfmjax.Status.UNSTABLE
+
+
+def test_nonfinite_data_flagged(noisy):
+    sig, start = noisy
+    y = np.asarray(sig.y).copy()
+    y[50] = np.nan
+    # Signals() refuses NaN; data arriving inside a jit/vmap are not checked: the same here
+    bad = eqx.tree_at(lambda s: s.y, sig, jnp.asarray(y))
+    with pytest.warns(UserWarning, match="nonfinite"):
+        fit = mfmjax.srivc(bad, start)
+    assert int(fit.status) & SrivcStatus.NONFINITE and not bool(fit.converged)
+    assert np.all(np.isfinite(np.asarray(fit.theta)))
+
+
+def test_boundary_errors(noisy):
+    sig, start = noisy
+    with pytest.raises(TypeError, match="srivc\\(\\): signals must be a Signals"):
+        mfmjax.srivc(np.zeros(10), start)
+    with pytest.raises(TypeError, match="srivc\\(\\): model must be a Model"):
+        mfmjax.srivc(sig, "model")
+    one = mfmjax.Model.from_coefficients([1.0, 1.0], [[1.0]], offset=0.0)
+    with pytest.raises(ValueError, match="srivc\\(\\): the model has 1 inputs but .* K=2"):
+        mfmjax.srivc(sig, one)
+    with pytest.raises(ValueError, match="srivc\\(\\): max_iter"):
+        mfmjax.srivc(sig, start, max_iter=0)
+    with pytest.raises(ValueError, match="srivc\\(\\): tol"):
+        mfmjax.srivc(sig, start, tol=-1.0)
+    short = Signals(np.asarray(sig.y)[:5], np.asarray(sig.u)[:5], dt=DT, intersample=MODES,
+                    offset=True)
+    with pytest.raises(ValueError, match="srivc\\(\\): the record needs more samples"):
+        mfmjax.srivc(short, start)
+    plain = Signals(sig.y, sig.u, dt=DT, intersample=MODES)
+    with pytest.raises(ValueError, match="srivc\\(\\): model.has_offset=True"):
+        mfmjax.srivc(plain, start)
