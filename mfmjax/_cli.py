@@ -442,16 +442,23 @@ def _grid(text: str, name: str, integer: bool = False) -> list:
         parts = text.split(":")
         if len(parts) != 2:
             raise _UserError(f"--{name}: expected a range a:b or a list a,b,c, got {text!r}")
-        lo, hi = (_ints(v, name)[0] if v.strip() else None for v in parts)
-        if lo is None or hi is None:
-            raise _UserError(f"--{name}: expected a range a:b, got {text!r}")
+        ends = [_ints(v, name) if v.strip() else [] for v in parts]
+        if any(len(e) != 1 for e in ends):
+            raise _UserError(f"--{name}: expected a range a:b of two integers, got {text!r}")
+        lo, hi = ends[0][0], ends[1][0]
         if hi < lo:
             raise _UserError(f"--{name}: empty range {text!r} (the end is below the start)")
+        if hi - lo >= _MAX_RANGE:
+            raise _UserError(f"--{name}: the range {text!r} has {hi - lo + 1:,} values; at most "
+                             f"{_MAX_RANGE:,} (a grid that size is not a search)")
         return list(range(lo, hi + 1))
     vals = _ints(text, name) if integer else _floats(text, name)
     if not vals:
         raise _UserError(f"--{name}: empty grid")
     return vals
+
+
+_MAX_RANGE = 10_000  # values in one a:b range: refused above, before building the list
 
 
 def _per_input_grid(text, name, K, integer):
@@ -657,6 +664,9 @@ def main(argv=None) -> int:
         if args.command is None:
             raise _UserError("mfmjax: give a command: identify, search, validate, online, "
                              "dataset, demo (see --help)")
+        for name, val in vars(args).items():  # argparse turns a value "--" into []
+            if isinstance(val, list):
+                raise _UserError(f"--{name}: expected a value, got {val!r}")
         for name in ("N", "M"):
             val = getattr(args, name, None)
             if isinstance(val, float) and abs(val) < 2**53 and val == int(val):

@@ -83,6 +83,10 @@ def _one_line_error(capsys, code, argv, match):
         ("search", "--validate", "1,2,3", "--validate: expected T0,T1"),
         ("search", "--validate", "9,2", "--validate: T0 must be below T1"),
         ("search", "--top", "0", "argument --top: expected an integer >= 1"),
+        ("search", "--n", ":,", "--n: expected a range a:b of two integers, got ':,'"),
+        ("search", "--N", "1,2:3", "--N: expected a range a:b of two integers"),
+        ("search", "--n", "1:1e12", "--n: the range '1:1e12' has 1,000,000,000,000 values; at "
+                                    "most 10,000"),
         ("validate", "--window", "0,inf", "--window: inf is not a finite number"),
         ("validate", "--window", "nan,nan", "--window: nan is not a finite number"),
         ("validate", "--window", "4", "--window: expected T0,T1 (two numbers), got '4'"),
@@ -464,7 +468,7 @@ from hypothesis import strategies as st  # noqa: E402
 
 _ODD = ["", " ", "nan", "NaN", "inf", "-inf", "1e999", "1e9", "1e300", "1e-320", "0", "-0", "-1",
         "2.5", "3", "x", "1,2", "1,", ",", "0,inf", "nan,1", "1:3", "3:1", "1:", "1:2:3", "1;2",
-        "0;0;0", "2,1", "1e5", "16", "250"]
+        "0;0;0", "2,1", "1e5", "16", "250", "1:1e12", "0:99999", "-5:5", ":,", "1,2:3", "--", "-"]
 TEXT = st.one_of(
     st.sampled_from(_ODD),
     st.floats(0.01, 20.0).map(lambda v: repr(round(v, 2))),  # mostly valid values
@@ -589,43 +593,43 @@ def _argv(base, defaults: dict, fuzzed):
     return argv
 
 
-DATA = ["--output", "y", "--inputs", "u1,u2"]
-TIME = {"--time": "t"}
+F_DATA = ["--output", "y", "--inputs", "u1,u2"]
+F_TIME = {"--time": "t"}
 
 
 def _time(fuzzed):  # --dt replaces --time when it is fuzzed (they exclude each other)
-    return {} if any(opt == "--dt" for opt, _ in fuzzed) else TIME
+    return {} if any(opt == "--dt" for opt, _ in fuzzed) else F_TIME
 
 
-IDENT = {"--n": "1", "--m": "0,0", "--N": "3", "--M": "3", "--h": "0.5", "--delays": None,
+F_IDENT = {"--n": "1", "--m": "0,0", "--N": "3", "--M": "3", "--h": "0.5", "--delays": None,
          "--dt": None}
 
 
 @FUZZ
-@given(fuzzed=_fuzzed(list(IDENT)))
+@given(fuzzed=_fuzzed(list(F_IDENT)))
 def test_fuzz_identify(stubbed, fuzzed):
-    _check_property(_argv(["identify", stubbed["rec"], *DATA],
-                          {**IDENT, **_time(fuzzed)}, fuzzed))
+    _check_property(_argv(["identify", stubbed["rec"], *F_DATA],
+                          {**F_IDENT, **_time(fuzzed)}, fuzzed))
 
 
-SEARCH = {"--n": None, "--m": None, "--N": None, "--M": None, "--h": "0.5", "--top": None,
+F_SEARCH = {"--n": None, "--m": None, "--N": None, "--M": None, "--h": "0.5", "--top": None,
           "--validate": None, "--delays": None, "--dt": None}
 
 
 @FUZZ
-@given(fuzzed=_fuzzed(list(SEARCH)))
+@given(fuzzed=_fuzzed(list(F_SEARCH)))
 def test_fuzz_search(stubbed, fuzzed):
-    _check_property(_argv(["search", stubbed["rec"], *DATA], {**SEARCH, **_time(fuzzed)}, fuzzed))
+    _check_property(_argv(["search", stubbed["rec"], *F_DATA], {**F_SEARCH, **_time(fuzzed)}, fuzzed))
 
 
-VALIDATE = {"--window": None, "--delays": None, "--dt": None}
+F_VALIDATE = {"--window": None, "--delays": None, "--dt": None}
 
 
 @FUZZ
-@given(fuzzed=_fuzzed(list(VALIDATE)))
+@given(fuzzed=_fuzzed(list(F_VALIDATE)))
 def test_fuzz_validate(stubbed, fuzzed):
-    _check_property(_argv(["validate", stubbed["rec"], *DATA, "--model", stubbed["model"]],
-                          {**VALIDATE, **_time(fuzzed)}, fuzzed))
+    _check_property(_argv(["validate", stubbed["rec"], *F_DATA, "--model", stubbed["model"]],
+                          {**F_VALIDATE, **_time(fuzzed)}, fuzzed))
 
 
 ONLINE_KEYS = ["interval", "n_start", "n_reident", "T_obfin", "T_obinit", "tr_corr", "steady_rel",
@@ -646,7 +650,7 @@ TOML_VALUE = st.one_of(
 def test_fuzz_online(stubbed, settings_, fuzzed):
     cfg = stubbed["dir"] / "fuzz.toml"
     cfg.write_text("".join(f"{k} = {v}\n" for k, v in settings_.items()))
-    _check_property(_argv(["online", stubbed["rec"], *DATA, "--config", str(cfg), "--json"],
+    _check_property(_argv(["online", stubbed["rec"], *F_DATA, "--config", str(cfg), "--json"],
                           _time(fuzzed), fuzzed))
 
 
