@@ -190,6 +190,7 @@ def _refine_report(sig, model, vary_delays: bool) -> dict:
         "model": oe.model, "settings": r.settings, "start_settings": r.start_settings,
         "refine_result": r.result, "refine_steps": r.steps, "E_mfm": E0, "E_refined": E1,
         "E_output_error": oe.E, "output_error_result": oe.result,
+        "output_error_converged": oe.converged, "output_error_stabilised": oe.stabilised,
         "parameters": {name: {"value": float(v), "std_error": float(e)}
                        for name, v, e in zip(oe.names, oe.theta, oe.std_errors)},
     }
@@ -202,6 +203,12 @@ def _print_report(rep: dict) -> None:
           f"N={s['N']:.4g} M={s['M']:.4g} h={s['h']:.5g} delays={delays}")
     print(f"E (eq. 17): MFM {rep['E_mfm']:.6g} -> refined settings {rep['E_refined']:.6g} -> "
           f"output error {rep['E_output_error']:.6g} ({rep['output_error_result']})")
+    if not rep["output_error_converged"]:
+        print(f"WARNING: output error NOT CONVERGED ({rep['output_error_result']}); the parameters "
+              "below are its best iterate and their standard errors are not trustworthy")
+    if rep["output_error_stabilised"]:
+        print("note: the refined MFM model was unstable; its right-half-plane poles were mirrored "
+              "before the output-error fit")
     print(f"{'parameter':<10}{'output error':>16}{'std. error':>14}")
     for name, p in rep["parameters"].items():
         print(f"{name:<10}{p['value']:>16.6e}{p['std_error']:>14.3e}")
