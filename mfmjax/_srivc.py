@@ -79,8 +79,10 @@ class SrivcFit(eqx.Module):
     `model` is the returned iterate (the converged one, else the best by simulation error);
     `status` holds `SrivcStatus` bits, `converged` is `status == 0`; `covariance` is the IV
     estimate $\\hat\\sigma^2 (\\hat\\Phi^T \\hat\\Phi)^{-1}$, `std_errors` its diagonal's root,
-    `sigma2` the simulation-residual variance, `E` the simulation error
-    $dt \\sum (y - \\hat x)^2$ (eq. 17) of `model`, `iterations` the IV solves done.
+    `sigma2` the simulation-residual variance (sum / (T - p)), `E` the simulation error
+    $dt \\sum (y - \\hat x)^2$ (eq. 17), `iterations` the IV solves done. E, sigma2 and the
+    covariance belong to the last evaluated iterate: `model` itself, or when converged the
+    iterate before it (within `tol`). The filters and $\\hat x$ start from rest.
     """
 
     model: Model
