@@ -140,6 +140,14 @@ def test_help_lists_validate_with_percent(capsys):
     assert "E, fit % and observed x0 of a saved model on a record" in out
 
 
+@pytest.mark.parametrize("command", ["identify", "search", "validate", "online", "dataset",
+                                     "demo"])
+def test_subcommand_help(capsys, command):
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0 and f"usage: mfmjax {command}" in capsys.readouterr().out
+
+
 def test_internal_error_exit_1_with_bug_hint(capsys, monkeypatch, tmp_path):
     import mfmjax.datasets as ds
 
