@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._modulating import ModulatingFunction
+from ._modulating import ModulatingFunction, phi_scaled
 from ._quadrature import (
     EDGE,
     delayed_samples,
@@ -26,6 +26,7 @@ from ._quadrature import (
     kernel_length,
     kernel_weights,
     modulate,
+    profile_weights,
     support_samples,
 )
 from ._signals import Signals
@@ -55,6 +56,18 @@ def column_sources(signals: Signals, structure: Structure):
     if signals.offset:
         srcs.append((K, 0, "zoh", -1.0))
     return srcs
+
+
+def source_groups(signals: Signals, structure: Structure):
+    """`column_sources` grouped by signal: [((signal, rule, sign), [derivative orders]), ...] in
+    column order (consecutive columns of one signal share its rule and sign)."""
+    groups = []
+    for src, i, rule, sign in column_sources(signals, structure):
+        if groups and groups[-1][0] == (src, rule, sign):
+            groups[-1][1].append(i)
+        else:
+            groups.append(((src, rule, sign), [i]))
+    return groups
 
 
 def static_span(signals: Signals, mf: ModulatingFunction, delay_max: float | None) -> float:
@@ -95,20 +108,23 @@ def modulated_signals(
     data = [signals.u[:, k] for k in range(K)] + [jnp.ones(T, dtype=jnp.float64)]
     delays = [signals.delays[k] for k in range(K)] + [jnp.asarray(0.0)]
     cols, bounds, first = [], [], jnp.asarray(0, dtype=jnp.int32)
-    for src, i, rule, sign in column_sources(signals, structure):
+    for (src, rule, sign), orders in source_groups(signals, structure):
         x = signals.y if src == -1 else data[src]
         tau = jnp.asarray(0.0) if src == -1 else delays[src]
-        w = kernel_weights(mf, i, dt, rule, tau, length) * (sign * mf.h ** (-i))
-        cols.append(modulate(x, w))
-        bounds.append(jnp.sum(jnp.abs(w)) * jnp.max(jnp.abs(x)))
+        # every derivative order of one signal in one batch: one weights program, one convolution
+        W = profile_weights(lambda r: jnp.stack([phi_scaled(r, mf.N, mf.M, i) for i in orders]),
+                            mf.h, dt, rule, tau, length)
+        W = W * (sign * mf.h ** (-jnp.asarray(orders, dtype=jnp.float64)))[:, None]
+        cols.append(jax.vmap(modulate, in_axes=(None, 0))(x, W).T)
+        bounds.append(jnp.sum(jnp.abs(W), axis=1) * jnp.max(jnp.abs(x)))
         first = jnp.maximum(first, support_samples(tau + mf.h, dt))
     q = gregory_weights(T, first, dt)
-    bounds = jnp.stack(bounds) * jnp.sqrt(jnp.sum(q))
+    bounds = jnp.concatenate(bounds) * jnp.sqrt(jnp.sum(q))
     u = signals.u
     spread = jnp.max(u, axis=0, initial=-jnp.inf) - jnp.min(u, axis=0, initial=jnp.inf)
     excited = spread > 1e-12 * jnp.maximum(jnp.max(jnp.abs(u), axis=0, initial=0.0), 1e-300)
     fits = first <= length - 1
-    return ModulatedSignals(jnp.stack(cols, axis=1), q, bounds, first, excited, fits)
+    return ModulatedSignals(jnp.concatenate(cols, axis=1), q, bounds, first, excited, fits)
 
 
 def feedthrough_corrections(
