@@ -375,7 +375,10 @@ def check_modulating(N, M, h, h_max) -> None:
     for name, val in (("N", N), ("M", M), ("h", h)):
         if is_traced(val):
             continue
-        if isinstance(val, (list, tuple, np.ndarray, jax.Array)):
+        if isinstance(val, (list, tuple)):
+            raise TypeError(f"{fn}(): {name} must be a number or an array, got a "
+                            f"{type(val).__name__} {_show(val)}; e.g. {name}=3")
+        if isinstance(val, (np.ndarray, jax.Array)):
             arr = array(fn, name, val, finite=False)
             if arr.size == 0:
                 raise ValueError(f"{fn}(): {name} is empty; give a number")
@@ -384,3 +387,23 @@ def check_modulating(N, M, h, h_max) -> None:
                             f"{_show(val)}")
     if h_max is not None:
         number(fn, "h_max", h_max, lo=0, lo_open=True)
+
+
+def check_cramer_rao(model, u, x0, dt, sigma, length) -> None:
+    """cramer_rao(): a Model, finite u and x0, dt > 0, 0 < sigma <= 1e150 (sigma^2 must not
+    overflow), length an integer in [1, T]."""
+    from ._model import Model
+
+    fn = "cramer_rao"
+    require_x64(fn)
+    if not isinstance(model, Model):
+        raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}")
+    if not is_traced(u):
+        u = array(fn, "u", u, ndim=(1, 2))
+    if not is_traced(x0):
+        array(fn, "x0", x0, ndim=1)
+    number(fn, "dt", dt, lo=0, lo_open=True)
+    number(fn, "sigma", sigma, lo=0, lo_open=True, hi=1e150,
+           fix="give the output noise's standard deviation")
+    if length is not None:
+        integer(fn, "length", length, lo=1, hi=int(np.shape(u)[0]))

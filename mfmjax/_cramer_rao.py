@@ -19,6 +19,9 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
 
     **Returns:** (names, std of the parameters).
     """
+    from ._boundary import check_cramer_rao
+
+    check_cramer_rao(model, u, x0, dt, sigma, length)
     u = jnp.asarray(u, dtype=jnp.float64).reshape(jnp.shape(u)[0], -1)
     length = u.shape[0] if length is None else length
     names, theta0 = free_parameters(model)
