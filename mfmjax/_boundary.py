@@ -308,7 +308,7 @@ def check_scores(signals, structure, *, h, N, M, delays, eta, validate, observer
 
 
 def _steps_tolerances(fn, max_steps, rtol, atol) -> None:
-    integer(fn, "max_steps", max_steps, lo=1, fix="give the most solver steps, e.g. 40")
+    integer(fn, "max_steps", max_steps, lo=0, fix="give the most solver steps, e.g. 40")
     number(fn, "rtol", rtol, lo=0, lo_open=True)
     number(fn, "atol", atol, lo=0, lo_open=True)
 

@@ -117,7 +117,7 @@ def test_best_out_of_range(data):
     (dict(vary=("h",), bounds={"h": (NAN, 5.0)}), ValueError,
      r"bounds\['h'\] lo has a NaN or inf value; give finite bounds"),
     (dict(vary=("h",), bounds={"h": 5.0}), ValueError, r"bounds\['h'\] must be a pair"),
-    (dict(vary=("h",), max_steps=-1), ValueError, r"max_steps must be an integer >= 1 "
+    (dict(vary=("h",), max_steps=-1), ValueError, r"max_steps must be an integer >= 0 "
                                                   r"\(got max_steps=-1\)"),
     (dict(vary=("h",), rtol=NAN), ValueError, r"rtol must be > 0 and finite"),
     (dict(vary=("h",), validate=3.0), TypeError, r"validate must be a pair"),
@@ -129,7 +129,7 @@ def test_refine_refuses(data, fitted, kw, err, match):
 
 
 @pytest.mark.parametrize("kw,err,match", [
-    (dict(max_steps=-1), ValueError, r"output_error\(\): max_steps must be an integer >= 1"),
+    (dict(max_steps=-1), ValueError, r"output_error\(\): max_steps must be an integer >= 0"),
     (dict(window=(0.0, NAN)), ValueError, r"window\[1\] must be a finite number"),
     (dict(window=2.0), TypeError, r"window must be a pair"),
 ])
