@@ -273,8 +273,9 @@ def _online_config(args, K: int, dt: float, names):
 
 # Measured: the on-line identifier's peak RSS (Table 1 settings scaled with T, n = 2, K = 2,
 # through the first identification) grew by 922 MB when T went from 2,500 to 25,000 samples
-# (ring buffer +180,000 samples x 3 signals x 8 bytes = 4.3 MB): about 213 times the buffer's
-# bytes, rounded up here. The fixed ~0.5 GB of compiled programs is not counted.
+# (ring buffer +180,000 samples x 3 signals x 8 bytes = 4.3 MB): 213-216 times the buffer's
+# bytes in two runs (benchmarks/online_work_memory.py), rounded up here. The fixed ~0.5 GB of
+# compiled programs is not counted.
 _WORK_PER_BUFFER = 256
 
 
