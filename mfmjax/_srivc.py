@@ -38,12 +38,14 @@ scan and 14 ms for `lax.associative_scan` (benchmarks/noise_montecarlo.py times 
 from __future__ import annotations
 
 import enum
+import functools
 import warnings
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_batching import custom_vmap
 
 from . import _boundary as _b
 from ._linalg import expm, hurwitz, solve
@@ -180,7 +182,7 @@ def _split(theta, n, m, has_offset):
 
 
 def _step(theta, y, u, delays, *, n, m, modes, has_offset, dt):
-    """One SRIVC pass at theta: (simulation error sum, next theta, Phi_hat (T, p))."""
+    """One SRIVC pass at theta: (simulation error sum, next theta, Phi_hat^T Phi_hat)."""
     a, bs, off = _split(theta, n, m, has_offset)
     T, K = y.shape[0], len(m)
     Ac = _companion(a)
@@ -203,7 +205,7 @@ def _step(theta, y, u, delays, *, n, m, modes, has_offset, dt):
     R = (Phih / ch).T @ (Phi / c)
     new = solve(R, (Phih / ch).T @ target) / c
     E = jnp.sum((y - xhat) ** 2)
-    return E, new, Phih
+    return E, new, Phih.T @ Phih
 
 
 def _core(theta0, y, u, delays, max_iter, tol, *, n, m, modes, has_offset, dt):
@@ -222,12 +224,11 @@ def _core(theta0, y, u, delays, max_iter, tol, *, n, m, modes, has_offset, dt):
         theta = c["theta"]
         stable = hurwitz(jnp.concatenate([theta[:n], jnp.ones(1)])) & jnp.all(jnp.isfinite(theta))
         # an unstable A is never filtered (it would overflow): a stable stand-in, discarded
-        E, new, Phih = step(jnp.where(stable, theta, theta.at[:n].set(guess)), y, u, delays)
+        E, new, G = step(jnp.where(stable, theta, theta.at[:n].set(guess)), y, u, delays)
         E = jnp.where(stable, E, jnp.inf)
         better = stable & (E < c["E_best"])
         pick = lambda now, old: jnp.where(better, now, old)  # noqa: E731
-        best, E_best, Phih_best = pick(theta, c["best"]), pick(E, c["E_best"]), pick(
-            Phih, c["Phih"])
+        best, E_best, G_best = pick(theta, c["best"]), pick(E, c["E_best"]), pick(G, c["G"])
         scale = jnp.maximum(jnp.abs(new), 1e-12 * jnp.max(jnp.abs(new)))
         change = jnp.max(jnp.abs(new - theta) / scale)
         finite = jnp.all(jnp.isfinite(new)) & ~jnp.isnan(E)
@@ -239,12 +240,12 @@ def _core(theta0, y, u, delays, max_iter, tol, *, n, m, modes, has_offset, dt):
         failed = status != 0
         conv = ~failed & (change < tol)
         return dict(theta=jnp.where(failed, theta, new), best=best, E_best=E_best,
-                    Phih=Phih_best, E_last=E, Phih_last=Phih, it=c["it"] + 1, status=status,
+                    G=G_best, E_last=E, G_last=G, it=c["it"] + 1, status=status,
                     done=failed | conv, conv=conv)
 
     T, p = y.shape[0], theta0.shape[0]
-    init = dict(theta=theta0, best=theta0, E_best=jnp.asarray(jnp.inf), Phih=jnp.zeros((T, p)),
-                E_last=jnp.asarray(jnp.inf), Phih_last=jnp.zeros((T, p)), it=jnp.asarray(0),
+    init = dict(theta=theta0, best=theta0, E_best=jnp.asarray(jnp.inf), G=jnp.zeros((p, p)),
+                E_last=jnp.asarray(jnp.inf), G_last=jnp.zeros((p, p)), it=jnp.asarray(0),
                 status=jnp.asarray(0), done=jnp.asarray(False), conv=jnp.asarray(False))
     c = jax.lax.while_loop(cond, body, init)
     status = c["status"] | jnp.where(~c["done"], int(SrivcStatus.MAX_ITER), 0)
@@ -253,11 +254,11 @@ def _core(theta0, y, u, delays, max_iter, tol, *, n, m, modes, has_offset, dt):
     conv = c["conv"] & (status == 0)
     theta = jnp.where(conv, c["theta"], c["best"])
     E = jnp.where(conv, c["E_last"], c["E_best"])
-    Phih = jnp.where(conv, c["Phih_last"], c["Phih"])
+    G = jnp.where(conv, c["G_last"], c["G"])  # Phi_hat^T Phi_hat
     sigma2 = E / max(T - p, 1)
-    ch = jnp.sqrt(jnp.sum(Phih**2, axis=0))
+    ch = jnp.sqrt(jnp.diagonal(G))
     ch = jnp.where(ch > 0, ch, 1.0)
-    Rn = (Phih / ch).T @ (Phih / ch)
+    Rn = G / ch[:, None] / ch[None, :]
     inv = jax.vmap(lambda e: solve(Rn, e))(jnp.eye(p)) / ch[:, None] / ch[None, :]
     cov = jnp.where(jnp.isfinite(E), sigma2 * 0.5 * (inv + inv.T), jnp.nan)
     return theta, E * dt, sigma2, cov, c["it"], status
@@ -277,12 +278,35 @@ def _run(a0, b0, off0, y, u, delays, max_iter, tol, dt, n, m, modes, has_offset)
     theta, E, sigma2, cov, it, status = _core(theta0, y, u, delays, max_iter, tol, n=n, m=m,
                                               modes=modes, has_offset=has_offset, dt=dt)
     a, bs, off = _split(theta, n, m, has_offset)
-    unstable = ~hurwitz(a)
+    model_status = jnp.where(hurwitz(a), 0, int(Status.UNSTABLE)).astype(jnp.int32)
     std = jnp.sqrt(jnp.diagonal(cov))
-    return theta, a, tuple(bs), off, unstable, std, cov, sigma2, E, it, status
+    nan = jnp.full((), jnp.nan)
+    return (theta, a, tuple(bs), off, model_status, nan, std, cov, sigma2, E, it, status,
+            status == 0)
 
 
-_run_jit = jax.jit(_run, static_argnums=(9, 10, 11, 12))
+@functools.cache
+def _program(n, m, modes, has_offset):
+    """The jitted SRIVC program of one structure. Under `jax.vmap` its rule maps the records one
+    after another (`lax.map`) inside the one compiled call: each record stops at its own
+    convergence and its filter scans stay in cache, where the batched while loop ran every
+    record to the slowest one's iteration count with a 4x slower batched scan per record
+    (measured: 50 records of 7500 samples, n = 4: 1.8 s batched, 0.43 s mapped)."""
+    def run(*args):
+        return _run(*args, n, m, modes, has_offset)
+
+    fn = custom_vmap(run)
+
+    @fn.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        def full(x, batched):
+            return x if batched else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x))
+
+        args = jax.tree.map(full, args, tuple(in_batched))
+        out = jax.lax.map(lambda xs: fn(*xs), args)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return jax.jit(fn)
 
 
 def srivc(signals: Signals, model: Model, *, max_iter: int = 30, tol: float = 1e-8) -> SrivcFit:
@@ -329,19 +353,15 @@ def srivc(signals: Signals, model: Model, *, max_iter: int = 30, tol: float = 1e
         tol = _b.number("srivc", "tol", tol, lo=0, lo_open=True,
                         fix="give a relative parameter change such as 1e-8")
     names = _names(n, m, model.has_offset)
-    theta, a, bs, off, unstable, std, cov, sigma2, E, it, status = _run_jit(
-        model.a, tuple(model.b), model.offset, signals.y, signals.u, model.delays,
-        jnp.asarray(max_iter), jnp.asarray(tol, dtype=jnp.float64),
-        jnp.asarray(signals.dt, dtype=jnp.float64), n, m, tuple(signals.intersample),
-        model.has_offset)
-    new = Model(a=a, b=bs, offset=off, delays=model.delays, theta=theta,
-                J=jnp.full_like(E, jnp.nan), J_rel=jnp.full_like(E, jnp.nan),
-                cond=jnp.full_like(E, jnp.nan),
-                status=jnp.where(unstable, int(Status.UNSTABLE), 0).astype(jnp.int32),
-                mf=None, structure=model.structure, intersample=tuple(signals.intersample),
-                has_offset=model.has_offset, output_name=signals.output_name,
-                input_names=tuple(signals.input_names))
-    fit = SrivcFit(new, model, theta, std, cov, sigma2, E, it, status == 0, status, names)
+    program = _program(n, m, tuple(signals.intersample), model.has_offset)
+    (theta, a, bs, off, model_status, nan, std, cov, sigma2, E, it, status, converged) = program(
+        model.a, tuple(model.b), model.offset, signals.y, signals.u, model.delays, max_iter,
+        tol, signals.dt)
+    new = Model(a=a, b=bs, offset=off, delays=model.delays, theta=theta, J=nan, J_rel=nan,
+                cond=nan, status=model_status, mf=None, structure=model.structure,
+                intersample=tuple(signals.intersample), has_offset=model.has_offset,
+                output_name=signals.output_name, input_names=tuple(signals.input_names))
+    fit = SrivcFit(new, model, theta, std, cov, sigma2, E, it, converged, status, names)
     if not traced and int(status) != 0:
         warnings.warn(f"srivc(): stopped without converging ({describe_srivc(int(status))}) "
                       f"after {int(it)} iterations; returned the best iterate by simulation "
