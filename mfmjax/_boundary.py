@@ -329,7 +329,9 @@ def check_refine(signals, *, score, vary, bounds, validate, observer_window, max
     if not isinstance(vary, (list, tuple, set, frozenset)) or not vary:
         raise ValueError(f"{fn}(): vary must name some of {SETTINGS} (got {_show(vary)})")
     for v in vary:
-        choice(fn, "vary entry", v, SETTINGS)
+        if not isinstance(v, str) or v not in SETTINGS:
+            raise ValueError(f"{fn}(): vary must name some of {SETTINGS} (unknown vary entry "
+                             f"{_show(v)})")
     if bounds is not None:
         if not isinstance(bounds, dict):
             raise TypeError(f"{fn}(): bounds must be a dict such as {{'h': (lo, hi)}}, got "
