@@ -58,6 +58,7 @@ from ._signals import Signals
 from ._status import Status
 
 DIVERGENCE_FACTOR = 100.0  # simulation error this many times the best iterate's: diverged
+MAX_ITER_LIMIT = 10**6  # max_iter above this is a typo, not a request
 ROUNDING_FLOOR = 1e-20  # E below this fraction of sum(y^2) is rounding: never 'diverged'
 
 
@@ -350,7 +351,7 @@ def srivc(signals: Signals, model: Model, *, max_iter: int = 30, tol: float = 1e
                          f"{p} parameters); use a longer record")
     traced = _b.is_traced(signals.y) or _b.is_traced(model.a) or _b.is_traced(max_iter)
     if not _b.is_traced(max_iter):
-        max_iter = _b.integer("srivc", "max_iter", max_iter, lo=1,
+        max_iter = _b.integer("srivc", "max_iter", max_iter, lo=1, hi=MAX_ITER_LIMIT,
                               fix="give the largest number of IV solves")
     if not _b.is_traced(tol):
         tol = _b.number("srivc", "tol", tol, lo=0, lo_open=True,
