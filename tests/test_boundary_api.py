@@ -141,7 +141,7 @@ def test_output_error_refuses(data, fitted, kw, err, match):
 
 @pytest.mark.parametrize("kw,err,match", [
     (dict(h=NAN, N=3, M=3), ValueError, r"scores\(\): h must be > 0 and finite"),
-    (dict(h="4", N=3, M=3), TypeError, r"h must be a number or a sequence"),
+    (dict(h="4", N=3, M=3), TypeError, r"scores\(\): h must be a number, got str"),
     (dict(h=4.0, N=3, M=3, validate=(INF, 5.0)), ValueError, r"validate\[0\] must be a finite"),
 ])
 def test_scores_refuses(data, kw, err, match):
