@@ -103,10 +103,10 @@ def load_model(path) -> Model:
         if doc.get("h") is not None:
             model = _with_mf(model, doc)
     except KeyError as err:
-        raise ValueError(f"load_model(): {path} has no field {err}") from None
+        raise ValueError(f"load_model(): {path} is missing or has a bad field: it has no field {err}") from None
     except (TypeError, ValueError) as err:
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
-        raise ValueError(f"load_model(): {path} has a bad field: {msg}") from None
+        raise ValueError(f"load_model(): {path} is missing or has a bad field: {msg}") from None
     return model
 
 
