@@ -19,7 +19,6 @@ import os
 import warnings
 
 import numpy as np
-import pytest
 from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
@@ -354,6 +353,22 @@ def test_fuzz_srivc(max_iter, tol):
                       ["srivc()"])
     if ok:
         honest_model(fit.model)
+
+
+@fuzzes("estimate", "Estimate")
+@FEW
+@given(h=st.one_of(st.just(2.0), junk), polish=st.one_of(st.booleans(), junk),
+       max_iter=st.one_of(st.just(5), junk))
+@example(h=2.0, polish=False, max_iter=5)
+def test_fuzz_estimate(h, polish, max_iter):
+    ok, est = outcome(lambda: mfmjax.estimate(record(), h=h, n=(1, 2), N=3, M=3, polish=polish,
+                                              max_iter=max_iter),
+                      ["estimate()", "search()", "srivc()"])
+    if ok:
+        assert isinstance(est, mfmjax.Estimate)
+        honest_model(est.model)
+        if est.converged:
+            assert np.all(np.isfinite(est.std_errors))
 
 
 # -- simulation and observers ---------------------------------------------------------------------
