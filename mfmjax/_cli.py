@@ -171,7 +171,9 @@ def _cmd_identify(args):
     else:
         print(f"{args.file}: {sig.n_samples} samples, dt={sig.dt:g}, K={sig.n_inputs}")
         print(model.summary())
-        if report:
+        if report and "summary" in report:
+            print("\n" + report["summary"])
+        elif report:
             _print_report(report)
 
 
@@ -522,6 +524,18 @@ def _cmd_search(args):
         kwargs["validate"] = _window(args.validate, "validate")
     result = mfmjax.search(sig, progress=_Progress("search"), **kwargs)
     report = None
+    if args.estimate and args.refine:
+        raise _UserError("--estimate and --refine are two ways to improve the winner; give one")
+    if args.estimate:
+        from ._estimate import estimate_from_search
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            est = estimate_from_search(sig, result)
+        report = {"model": est.model, "method": est.method, "converged": est.converged,
+                  "srivc_status": est.srivc.describe(), "summary": est.summary(),
+                  "parameters": {k: {"value": float(v), "std_error": float(e)} for k, v, e in
+                                 zip(est.names, _free_values(est.model), est.std_errors)}}
     if args.refine:
         best = result.best()
         sig_best = _with_delays(sig, best.delays)
@@ -533,14 +547,23 @@ def _cmd_search(args):
     if args.json:
         out = result.to_dict(top=args.top)
         if report:
-            out["refined"] = {k: v for k, v in report.items() if k != "model"}
+            key = "estimated" if "summary" in report else "refined"
+            out[key] = {k: v for k, v in report.items() if k not in ("model", "summary")}
         _print_json(out)
     else:
         print(f"{len(result)} candidates, ranked by {args.score} "
               f"(compile {result.compile_s:.1f} s, run {result.run_s:.1f} s)")
         print(result.table(args.top))
-        if report:
+        if report and "summary" in report:
+            print("\n" + report["summary"])
+        elif report:
             _print_report(report)
+
+
+def _free_values(model):
+    from ._output_error import free_parameters
+
+    return free_parameters(model)[1]
 
 
 def _with_delays(sig, delays):  # a Signals with other delays
@@ -636,6 +659,8 @@ def main(argv=None) -> int:
     p.add_argument("--save", help="write the best model to this JSON file")
     p.add_argument("--refine", action="store_true", help="refine the best candidate's settings "
                    "by gradient, then its parameters by output error")
+    p.add_argument("--estimate", action="store_true", help="noisy data: SRIVC from the best "
+                   "candidate (mfmjax.estimate's path), parameters with standard errors")
     p.set_defaults(func=_cmd_search)
     p = sub.add_parser("validate", help="E, fit %% and observed x0 of a saved model on a record")
     _add_data_args(p)

@@ -74,9 +74,17 @@ def estimate(
         raise TypeError(f"estimate(): polish must be True or False (got {polish!r})")
     res = search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score,
                  validate=validate)
+    return estimate_from_search(signals, res, polish=polish, max_iter=max_iter, tol=tol)
+
+
+def estimate_from_search(signals: Signals, res: SearchResult, *, polish: bool = False,
+                         max_iter: int = 30, tol: float = 1e-8) -> Estimate:
+    """The stages of `estimate` after its search, from a `SearchResult` of `signals` (the
+    winner's delays are used)."""
     if len(res) == 0:
         raise ValueError("estimate(): the search grid has no feasible candidate; widen N, M or h")
     start = res.best(0)
+    signals = eqx.tree_at(lambda q: q.delays, signals, start.delays)  # the winner's delays
     if int(start.status) != 0:
         warnings.warn(f"estimate(): every candidate is flagged; starting from the best one "
                       f"({describe(int(start.status))})", stacklevel=2)

@@ -50,3 +50,27 @@ def test_estimate_with_output_error_polish(noisy):
 def test_estimate_refuses_a_non_bool_polish(noisy):
     with pytest.raises(TypeError, match=r"estimate\(\): polish must be True or False"):
         mfmjax.estimate(noisy[0], polish="yes", **GRID)
+
+
+def test_cli_search_estimate(noisy, tmp_path, capsys):
+    """`mfmjax search ... --estimate`: the same path from the command line, same model."""
+    import json
+
+    from mfmjax._cli import main
+
+    sig, _ = noisy
+    path = tmp_path / "noisy.csv"
+    np.savetxt(path, np.column_stack([np.asarray(sig.y), np.asarray(sig.u)[:, 0]]),
+               delimiter=",", header="y,u", comments="")
+    args = ["search", str(path), "--output", "y", "--inputs", "u", "--dt", str(DT),
+            "--intersample", "zoh", "--n", "1:3", "--N", "3:4", "--M", "3:4", "--h", "2,3",
+            "--score", "bic", "--estimate"]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "method: MFM search -> srivc" in text and "std error" in text
+    assert main(args + ["--json"]) == 0
+    est = json.loads(capsys.readouterr().out)["estimated"]
+    ref = mfmjax.estimate(sig, **GRID)
+    got = [est["parameters"][k]["value"] for k in ref.names]
+    np.testing.assert_allclose(got, _params(ref.model), rtol=1e-12)  # the same computation
+    assert main(args + ["--refine"]) == 2  # one way to improve the winner at a time
