@@ -162,7 +162,7 @@ def array(fn: str, name: str, value, *, ndim=None, finite: bool = True,
         except (ValueError, TypeError):
             raise TypeError(f"{fn}(): {name} must be a rectangular array of numbers "
                             f"(got {_show(value)})") from None
-    if dtype == bool:
+    if np.issubdtype(dtype, np.bool_):
         raise TypeError(f"{fn}(): {name} is a bool array; booleans are not samples, convert "
                         f"them explicitly (e.g. {name}.astype(float))")
     if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)):

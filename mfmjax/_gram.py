@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._boundary import require_x64
 from ._modulating import ModulatingFunction, phi_scaled
 from ._quadrature import (
     EDGE,
@@ -100,6 +101,7 @@ def modulated_signals(
 
     `length` is the static kernel length (default: what h_max and delay_max need); a support
     longer than it is reported in `fits`, never truncated silently."""
+    require_x64("modulated_signals")
     dt = signals.dt
     if length is None:
         length = kernel_length(static_span(signals, mf, delay_max), dt)
@@ -168,6 +170,7 @@ def feedthrough_columns(signals: Signals, k: int, n: int, mf: ModulatingFunction
 
 def gram(ms: ModulatedSignals) -> jax.Array:
     r"""$G = \int c(t) c(t)^T dt$ (eq. 9-10), Gregory rule on the valid samples."""
+    require_x64("gram")
     C = ms.columns
     return C.T @ (ms.weights[:, None] * C)
 

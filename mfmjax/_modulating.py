@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import jax.scipy.special as jsp
 import numpy as np
 
+from ._boundary import require_x64
 from ._pytree import replace_fields
 
 MAX_DEGREE = 20  # N + M bound that the fixed Gauss rule of _quadrature integrates exactly
@@ -105,6 +106,7 @@ def phi_scaled(r, N, M, i: int):
 
     `i` is a static int; `r` an array; `N`, `M` numbers or arrays. Values outside $[0,1]$ are 0.
     """
+    require_x64("phi_scaled")
     r = jnp.asarray(r, dtype=jnp.float64)
     inside = (r > 0) & (r < 1)
     rs = jnp.where(inside, r, 0.5)  # keeps gradients finite at and outside the ends
@@ -124,6 +126,7 @@ def phi_scaled(r, N, M, i: int):
 
 def phi(t, mf: ModulatingFunction, i: int = 0):
     r"""$\phi^{(i)}(t) = h^{N+M-i} p_i(t/h)$ in physical time (0 outside $[0, h]$)."""
+    require_x64("phi")
     h = mf.h
     return h ** (mf.N + mf.M - i) * phi_scaled(jnp.asarray(t) / h, mf.N, mf.M, i)
 
@@ -134,6 +137,7 @@ def phi_integral(a, b, mf: ModulatingFunction, i: int = 0):
     For $i \ge 1$ this is $\phi^{(i-1)}(b) - \phi^{(i-1)}(a)$; for $i = 0$ it is
     $h^{N+M+1} B(N+1, M+1)\,[I_{b/h} - I_{a/h}]$ with the regularised incomplete beta $I$.
     """
+    require_x64("phi_integral")
     if i >= 1:
         return phi(b, mf, i - 1) - phi(a, mf, i - 1)
     h = mf.h

@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _boundary as _b
+from ._boundary import require_x64
 from ._model import Model, plain_number
 from ._observers import observe_forced
 from ._search import padded_forced, plan_search, run_plan, validate_candidate
@@ -264,6 +265,7 @@ def _empty_model(config: OnlineConfig) -> dict:
 
 def init(config: OnlineConfig) -> OnlineState:
     """A fresh on-line identifier (no data, no model)."""
+    require_x64("online.init")
     if not isinstance(config, OnlineConfig):
         raise TypeError("init(): config must be an OnlineConfig")
     K, L = config.n_inputs, config.buffer

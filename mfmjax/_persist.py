@@ -11,6 +11,7 @@ import tempfile
 
 import numpy as np
 
+from ._boundary import require_x64
 from ._model import Model
 from ._modulating import ModulatingFunction
 from ._status import Status
@@ -61,6 +62,7 @@ def atomic_write(path, data: bytes) -> None:
 
 def save_model(model: Model, path) -> None:
     """Write `model` (concrete) to a JSON file (atomically: see `atomic_write`)."""
+    require_x64("save_model")
     doc = {"format": FORMAT, "version": VERSION, **model.to_dict()}
     atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
 
@@ -71,6 +73,7 @@ def load_model(path) -> Model:
     Refuses non-finite or mis-sized coefficients (a, b, offset, theta), an unknown status and
     a theta whose length does not match the structure (n + 1 + sum(m_k + 1) [+ 1 offset]).
     """
+    require_x64("load_model")
     try:
         with open(path, "rb") as fh:
             raw = fh.read()

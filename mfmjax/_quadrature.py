@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._boundary import require_x64
 from ._modulating import ModulatingFunction, phi_scaled
 
 RULES = ("zoh", "foh", "cubic")
@@ -67,6 +68,7 @@ def kernel_weights(mf: ModulatingFunction, i: int, dt: float, rule: str, delay, 
     `i`, `dt`, `rule`, `length` are static; `mf.h`, `mf.N`, `mf.M` and `delay` may be traced
     (differentiable). Weights beyond the support are exactly 0.
     """
+    require_x64("kernel_weights")
     return profile_weights(lambda r: phi_scaled(r, mf.N, mf.M, i)[None], mf.h, dt, rule, delay,
                            length)[0]
 

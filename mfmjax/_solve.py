@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from . import _linalg
+from ._boundary import require_x64
 from ._status import Status
 
 DEAD_COLUMN_RTOL = 1e-10  # column norm below this fraction of its bound: no excitation, masked
@@ -18,6 +19,11 @@ def closed_form(G, eta):
 
     Fails (inf/NaN) when G is singular, which it is on noise-free data in exact arithmetic.
     """
+    require_x64("closed_form")
+    G, eta = jnp.asarray(G), jnp.asarray(eta)
+    if G.ndim != 2 or G.shape[0] != G.shape[1] or eta.shape != G.shape[:1]:
+        raise ValueError(f"closed_form(): G must be square (p, p) and eta (p,); got G "
+                         f"{G.shape} and eta {eta.shape}")
     g = jnp.linalg.solve(G, eta)
     return g / (eta @ g)
 
@@ -37,6 +43,7 @@ def constrained_solve(G, eta, active, conditioning: bool = True):
     (capped at 1/eps), `reduced_cond` is $\lambda_{max}/\lambda_2$, the conditioning of the
     constrained problem; both to relative accuracy 1e-4 (`conditioning_eigvals`).
     """
+    require_x64("constrained_solve")
     p = G.shape[0]
     active = jnp.asarray(active, dtype=bool)
     diag = jnp.diagonal(G)

@@ -12,6 +12,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._boundary import require_x64
 from ._model import Model
 
 
@@ -26,6 +27,7 @@ class StateSpace(eqx.Module):
 
 def state_space(model: Model) -> StateSpace:
     r"""Eq. (18): the observable canonical realisation of `model`."""
+    require_x64("state_space")
     n = model.n
     a = model.a / model.a[n]
     bs = list(model.b) + ([jnp.reshape(model.offset, (1,))] if model.has_offset else [])
@@ -55,6 +57,7 @@ def realisation(a, bs, n):
 
 def to_scipy(model: Model):
     """`scipy.signal.StateSpace` of the model (delays are not representable there: ignored)."""
+    require_x64("to_scipy")
     import numpy as np
     from scipy import signal
 
@@ -64,6 +67,7 @@ def to_scipy(model: Model):
 
 def to_control(model: Model):
     """python-control `StateSpace` (requires the optional `control` package; delays ignored)."""
+    require_x64("to_control")
     try:
         import control
     except ImportError as err:  # pragma: no cover - depends on the environment

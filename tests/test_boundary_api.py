@@ -352,3 +352,56 @@ def test_first_window_with_a_spike_is_refused():
     assert first["action"].startswith("refused: outlier in the identification window")
     assert "t = 1000" in first["action"] and not ident.models
     assert math.isnan(float(ident.state.model["op_time"]))
+
+
+def test_low_level_entries_refuse_float32_mode(data):
+    """The building blocks in `__all__` check x64 too (the test above covers the main verbs)."""
+    model, sig = data
+    mf = ModulatingFunction(3, 3, 4.0)
+    G = np.eye(3)
+    calls = {
+        "phi": lambda: mfmjax.phi(0.5, mf), "phi_scaled": lambda: mfmjax.phi_scaled(0.5, 3, 3, 0),
+        "phi_integral": lambda: mfmjax.phi_integral(0.0, 1.0, mf),
+        "kernel_weights": lambda: mfmjax.kernel_weights(mf, 0, DT, "foh", 0.0, 100),
+        "modulated_signals": lambda: mfmjax.modulated_signals(sig, Structure(2, 0), mf),
+        "closed_form": lambda: mfmjax.closed_form(G, np.ones(3)),
+        "constrained_solve": lambda: mfmjax.constrained_solve(G, np.ones(3), np.ones(3, bool)),
+        "state_space": lambda: mfmjax.state_space(model),
+        "to_scipy": lambda: mfmjax.to_scipy(model), "to_control": lambda: mfmjax.to_control(model),
+        "save_model": lambda: mfmjax.save_model(model, "/nonexistent/m.json"),
+        "load_model": lambda: mfmjax.load_model("/nonexistent/m.json"),
+    }
+    config = OnlineConfig(dt=1.0, n_inputs=1)
+    calls["online.init"] = lambda: mfmjax.online.init(config)
+    jax.config.update("jax_enable_x64", False)
+    try:
+        for name, call in calls.items():
+            with pytest.raises(RuntimeError, match=rf"{name}\(\): JAX float64 mode is off"):
+                call()
+    finally:
+        jax.config.update("jax_enable_x64", True)
+
+
+def test_closed_form_and_datasets_refuse_bad_arguments():
+    from mfmjax.datasets import (
+        forehearth,
+        simulated_experiment,
+        switching_experiment,
+        third_order_two_input,
+        transport_delay,
+    )
+
+    with pytest.raises(ValueError, match=r"closed_form\(\): G must be square \(p, p\) and eta"):
+        mfmjax.closed_form(np.eye(3), np.ones(2))
+    with pytest.raises(TypeError, match=r"transport_delay\(\): pull is missing"):
+        transport_delay(None)
+    with pytest.raises(ValueError, match=r"transport_delay\(\): pull must be > 0"):
+        transport_delay(-1.0)
+    with pytest.raises(ValueError, match=r"switching_experiment\(\): interval must be an integer"):
+        switching_experiment(interval=2.5)
+    with pytest.raises(TypeError, match=r"switching_experiment\(\): models must be a sequence"):
+        switching_experiment("AB")
+    with pytest.raises(ValueError, match=r"forehearth\(\): experiment must be 1 or 2"):
+        forehearth(True)
+    with pytest.raises(ValueError, match=r"simulated_experiment\(\): dt must be > 0"):
+        simulated_experiment(third_order_two_input(), dt=float("nan"), n_samples=100)

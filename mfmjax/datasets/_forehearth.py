@@ -31,6 +31,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solve_banded
 
+from .. import _boundary as _b
+
 # -- physical constants (SI unless stated) ----------------------------------------------------
 RHO = 2450.0  # kg/m^3, density of molten soda-lime glass at ~1150 degC
 CP = 1300.0  # J/(kg K), specific heat of molten soda-lime glass
@@ -58,7 +60,10 @@ T_PER_DAY = 1000.0 / 86400.0  # kg/s per t/24h
 
 def transport_delay(pull):
     """Transport delay (s) from the inlet thermocouple to the zone thermocouple at `pull` t/24h."""
-    return X_TC / _velocity(np.asarray(pull, dtype=np.float64))
+    pull = _b.array("transport_delay", "pull", pull, ndim=(0, 1))
+    if np.any(pull <= 0):
+        raise ValueError(f"transport_delay(): pull must be > 0 t/24h (got {pull.tolist()})")
+    return X_TC / _velocity(pull)
 
 
 def _velocity(pull):
@@ -126,8 +131,9 @@ def forehearth(experiment: int = 1, seed: int = 0) -> dict:
     `intersample` (input 1 foh: a temperature; input 2 zoh: a controller output held between
     samples).
     """
-    if experiment not in _EXPERIMENTS:
+    if isinstance(experiment, bool) or experiment not in _EXPERIMENTS:
         raise ValueError(f"forehearth(): experiment must be 1 or 2 (got {experiment!r})")
+    seed = _b.integer("forehearth", "seed", seed, lo=0)
     ex = _EXPERIMENTS[experiment]
     rng = np.random.default_rng(seed)
     n_samples = ex["duration"] + 1

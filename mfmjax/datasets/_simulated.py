@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import _boundary as _b
 from .._model import Model
 from .._signals import Signals
 from .._simulate import simulate
@@ -37,6 +38,13 @@ def simulated_experiment(
 
     `noise_std` adds white Gaussian noise to the output. Deterministic per `seed`.
     """
+    fn = "simulated_experiment"
+    if not isinstance(model, Model):
+        raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}")
+    dt = _b.number(fn, "dt", dt, lo=0, lo_open=True)
+    n_samples = _b.integer(fn, "n_samples", n_samples, lo=16)
+    noise_std = _b.number(fn, "noise_std", noise_std, lo=0)
+    seed = _b.integer(fn, "seed", seed, lo=0)
     rng = np.random.default_rng(seed)
     u = _inputs(n_samples, dt, model.intersample, rng)
     y = np.asarray(simulate(model, u, x0, dt=dt))
@@ -97,6 +105,14 @@ def switching_experiment(
 
     from .._simulate import simulate_status
 
+    fn = "switching_experiment"
+    interval = _b.integer(fn, "interval", interval, lo=8)
+    n_intervals = _b.integer(fn, "n_intervals", n_intervals, lo=1)
+    noise_std = _b.number(fn, "noise_std", noise_std, lo=0)
+    seed = _b.integer(fn, "seed", seed, lo=0)
+    if models is not None and (isinstance(models, (str, bytes)) or not all(
+            isinstance(mdl, Model) for mdl in models)):
+        raise TypeError(f"{fn}(): models must be a sequence of Model (got {models!r})")
     models = list(models or switching_plant())
     if len(switches) != len(models) - 1:
         raise ValueError("switching_experiment(): need len(models) - 1 switches")
