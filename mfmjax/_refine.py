@@ -14,6 +14,7 @@ Output error and the Cramer-Rao bound live in `_output_error` and `_cramer_rao`.
 from __future__ import annotations
 
 import math
+import warnings
 
 import equinox as eqx
 import jax
@@ -99,6 +100,11 @@ class Refinement(eqx.Module):
     steps: int
     value: float  # the score (E or J_rel) of `model`, the model returned
     score: str = eqx.field(static=True)
+
+    @property
+    def converged(self) -> bool:
+        """BFGS met its tolerances (a result that ran out of steps is not converged)."""
+        return self.result == "successful"
 
     @property
     def improved(self) -> bool:
@@ -239,7 +245,12 @@ def refine(
         result = optx.RESULTS.max_steps_reached
     code = solver_code(result)
     s_start = {k: _plain(v) for k, v in x0.items()}
-    if not math.isfinite(path[0]) or best_f >= path[0] or code not in USABLE:
+    failed = not math.isfinite(path[0]) or best_f >= path[0] or code not in USABLE
+    if code != "successful":
+        warnings.warn(f"refine(): not converged ({code} after {steps} steps); returning "
+                      f"{'the start' if failed else 'the best point of the path'} (see "
+                      "Refinement.converged)", stacklevel=2)
+    if failed:
         return Refinement(start, start, s_start, s_start, np.exp(np.asarray(path)), code, steps,
                           math.exp(path[0]), score)
     s = {k: _plain(v) for k, v in objective.settings(best_z).items()}

@@ -52,3 +52,10 @@ def test_unstable_start_is_stabilised_and_fitted(noisy):
     assert np.isfinite(fit.E) and fit.E <= fit.E_start
     np.testing.assert_allclose(fit.theta, [2.0, 3.0, 1.0], rtol=0.05)
     assert "start was unstable" in fit.summary()
+
+
+def test_refine_out_of_steps_warns_and_says_so(noisy):
+    start = mfmjax.identify(noisy, Structure(2, [0]), mfmjax.ModulatingFunction(3, 3, 2.0))
+    with pytest.warns(UserWarning, match=r"refine\(\): not converged \(max_steps_reached"):
+        r = mfmjax.refine(noisy, start, vary=("h",), max_steps=1)
+    assert not r.converged and r.result == "max_steps_reached"
