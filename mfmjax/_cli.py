@@ -68,23 +68,10 @@ def _window(text: str, name: str) -> tuple[float, float]:
     return vals[0], vals[1]
 
 
-def _json_safe(x):
-    """Strict JSON: NaN / inf as null (the text output says what they meant)."""
-    if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _json_safe(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
 def _print_json(obj) -> None:
-    print(json.dumps(_json_safe(obj), allow_nan=False))
+    from ._persist import json_safe
+
+    print(json.dumps(json_safe(obj), allow_nan=False))
 
 
 def _ints(text: str, name: str) -> list[int]:

@@ -113,10 +113,9 @@ def demo(out: str = "mfmjax-demo", horizon: float | None = None) -> dict:
                 "null: no prediction yet (the first model is identified after n_start "
                 "intervals and predicts from the interval after it); use a longer horizon")
     path = os.path.join(out, "results.json")
-    from ._online import _json_safe
-    from ._persist import atomic_write
+    from ._persist import atomic_write, json_safe
 
-    text = json.dumps(_json_safe(results), indent=1, allow_nan=False) + "\n"
+    text = json.dumps(json_safe(results), indent=1, allow_nan=False) + "\n"
     atomic_write(path, text.encode())
     print(f"wrote {out}/experiment{{1,2}}_inputs.png, experiment{{1,2}}_prediction.png, "
           "results.json")

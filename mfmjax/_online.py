@@ -731,30 +731,15 @@ def save(path, state: OnlineState, extra: dict | None = None) -> None:
     """Write the whole state (configuration included) to one `.npz` file, atomically (a
     temporary file in the same folder, then `os.replace`: a crash mid-save leaves the previous
     checkpoint intact). `extra`: any JSON data to keep with it (e.g. the wrapper's records)."""
-    from ._persist import atomic_write
+    from ._persist import atomic_write, json_safe
 
     if not isinstance(state, OnlineState):
         raise TypeError("save(): state must be an OnlineState (from init, update or load)")
     try:
-        data = _pack(state.config.to_dict(), _json_safe(extra or {}), _leaf_arrays(state))
+        data = _pack(state.config.to_dict(), json_safe(extra or {}), _leaf_arrays(state))
     except (TypeError, ValueError) as err:
         raise ValueError(f"save(): extra must be JSON data ({err})") from None
     atomic_write(path, data)
-
-
-def _json_safe(x):
-    """NaN/inf floats as None (strict JSON), tuples as lists, numpy scalars as Python ones."""
-    if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _json_safe(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def _load(path):

@@ -24,6 +24,22 @@ def _write_all(fh, data: bytes) -> None:  # one place to fail in tests (a crash 
     fh.write(data)
 
 
+def json_safe(x):
+    """Strict JSON data: NaN / inf floats as None, tuples as lists, numpy values as Python ones
+    (the text output next to the JSON says what a None meant)."""
+    if isinstance(x, dict):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return json_safe(x.tolist())
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
 def atomic_write(path, data: bytes) -> None:
     """Write `data` to `path` so that `path` always holds either its old or its new content.
 

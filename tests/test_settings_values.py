@@ -3,40 +3,16 @@ for the compiled programs, never a new program. Compilations are counted from JA
 (`jax_log_compiles`), so every program counts: jitted cores and eager primitives alike.
 """
 
-import contextlib
-import logging
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jaxlog import compiles
 
 import mfmjax
 from mfmjax import ModulatingFunction, OnlineConfig, OnlineIdentifier, Signals, Status, Structure
 from mfmjax.datasets import simulated_experiment, switching_experiment, third_order_two_input
-
-
-@contextlib.contextmanager
-def compiles():
-    """Names of the programs JAX compiles inside the block."""
-    names = []
-
-    class Handler(logging.Handler):
-        def emit(self, record):
-            msg = record.getMessage()
-            if msg.startswith("Compiling "):
-                names.append(msg.split()[1])
-
-    handler, logger = Handler(), logging.getLogger("jax")
-    before = jax.config.jax_log_compiles
-    jax.config.update("jax_log_compiles", True)
-    logger.addHandler(handler)
-    try:
-        yield names
-    finally:
-        logger.removeHandler(handler)
-        jax.config.update("jax_log_compiles", before)
-
 
 DT = 0.05
 ST = Structure(3, [1, 1])

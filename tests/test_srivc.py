@@ -13,8 +13,6 @@ data the true parameters are an exact fixed point of the iteration (module docst
 \\mathrm{cond}(\\hat\\Phi_{eq})$ (rounding accumulated over T samples).
 """
 
-import contextlib
-import logging
 
 import equinox as eqx
 import jax
@@ -22,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import reference_srivc as ref
+from jaxlog import compiles
 from scipy import signal
 
 import mfmjax
@@ -33,28 +32,6 @@ T, DT = 400, 0.1
 MODES = ("foh", "zoh")
 WHOLE = np.array([0.0, 3 * DT])  # whole-sample delays (the twin takes these)
 LAGS = [0, 3]
-
-
-@contextlib.contextmanager
-def compiles():
-    """Names of the programs JAX compiles inside the block (as tests/test_settings_values.py)."""
-    names = []
-
-    class Handler(logging.Handler):
-        def emit(self, record):
-            msg = record.getMessage()
-            if msg.startswith("Compiling "):
-                names.append(msg.split()[1])
-
-    handler, logger = Handler(), logging.getLogger("jax")
-    before = jax.config.jax_log_compiles
-    jax.config.update("jax_log_compiles", True)
-    logger.addHandler(handler)
-    try:
-        yield names
-    finally:
-        logger.removeHandler(handler)
-        jax.config.update("jax_log_compiles", before)
 
 
 def _theta(model):
