@@ -117,7 +117,7 @@ def modulated_signals(
         W = profile_weights(lambda r: jnp.stack([phi_scaled(r, mf.N, mf.M, i) for i in orders]),
                             mf.h, dt, rule, tau, length)
         W = W * (sign * mf.h ** (-jnp.asarray(orders, dtype=jnp.float64)))[:, None]
-        cols.append(jax.vmap(modulate, in_axes=(None, 0))(x, W).T)
+        cols.append(modulate(x, W).T)
         bounds.append(jnp.sum(jnp.abs(W), axis=1) * jnp.max(jnp.abs(x)))
         first = jnp.maximum(first, support_samples(tau + mf.h, dt))
     q = gregory_weights(T, first, dt)

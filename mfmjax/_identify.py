@@ -50,7 +50,7 @@ def _check(signals: Signals, structure: Structure, mf: ModulatingFunction, eta):
     p = structure.n_params + int(signals.offset)
     check_record_length(signals, mf, p)
     eta = np.ones(p) if eta is None else eta
-    eta = jnp.asarray(eta, dtype=jnp.float64)
+    eta = jnp.asarray(eta, dtype=jnp.float64) if not _concrete(eta) else np.asarray(eta, np.float64)
     if eta.shape != (p,):
         raise ValueError(
             f"identify(): eta must have one entry per parameter ({p}), got shape {eta.shape}"

@@ -89,8 +89,11 @@ def as_values(mf: ModulatingFunction) -> ModulatingFunction:
     """`mf` with N, M and h as float64 array leaves and no static bound: the form that jitted
     programs take, so that a new setting is a new value, never a new program (the kernel
     length is fixed separately, by `_quadrature.kernel_bucket`)."""
-    return replace_fields(mf, N=jnp.asarray(mf.N, dtype=jnp.float64),
-                          M=jnp.asarray(mf.M, dtype=jnp.float64), h_max=None)
+    def value(x):  # numpy for concrete values (no device dispatch), jnp for tracers
+        return jnp.asarray(x, dtype=jnp.float64) if isinstance(x, jax.core.Tracer) else \
+            np.asarray(x, dtype=np.float64)
+
+    return replace_fields(mf, N=value(mf.N), M=value(mf.M), h_max=None)
 
 
 def _falling(x, j: int):

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import math
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -150,13 +149,33 @@ def profile_weights(profile, h, dt: float, rule: str, delay, length: int):
     return out.at[:, idx.reshape(-1)].add(contrib.reshape(Q, -1))
 
 
+def fft_size(n: int) -> int:
+    """Smallest 2^a 3^b 5^c >= n (sizes the FFT library handles fastest)."""
+    best = 1 << (n - 1).bit_length()
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            p235 = p35 * (1 << max(0, (-(-n // p35) - 1).bit_length()))
+            best = min(best, p235)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
 def modulate(x, weights):
     r"""Sliding convolution $\sum_l w_l x_{k-l}$ for every $k$ (zero before the record start).
 
-    `x` is (T,), `weights` (L,); returns (T,). Entries with $k < \lceil(\tau+h)/dt\rceil$ are not
-    valid modulated values and are masked by the Gram quadrature.
+    `x` is (T,), `weights` (..., L) (a batch of kernels); returns (..., T). Entries with
+    $k < \lceil(\tau+h)/dt\rceil$ are not valid modulated values and are masked by the Gram
+    quadrature. By real FFT of a size >= T + L - 1 (a linear, not circular, convolution: every
+    entry is the direct sum up to rounding of order eps times the norms), about 10x faster than
+    the direct sum for the kernels of this method (hundreds of taps).
     """
-    return jnp.convolve(x, weights, mode="full", precision=jax.lax.Precision.HIGHEST)[: x.shape[0]]
+    T, L = x.shape[0], weights.shape[-1]
+    n = fft_size(T + L - 1)
+    spectrum = jnp.fft.rfft(x, n) * jnp.fft.rfft(weights, n, axis=-1)
+    return jnp.fft.irfft(spectrum, n, axis=-1)[..., :T]
 
 
 def gregory_weights(n_samples: int, first, dt: float):

@@ -6,26 +6,13 @@ import jax.numpy as jnp
 
 from .._quadrature import (
     delayed_samples,
+    fft_size,
     gregory_weights,
     legendre_weights,
     support_samples,
 )
 from .._signals import Signals
 from ._grid import ChunkStatic
-
-
-def _fft_size(n: int) -> int:
-    """Smallest 2^a 3^b 5^c >= n (sizes the FFT library handles fastest)."""
-    best = 1 << (n - 1).bit_length()
-    p5 = 1
-    while p5 < best:
-        p35 = p5
-        while p35 < best:
-            p235 = p35 * (1 << max(0, (-(-n // p35) - 1).bit_length()))
-            best = min(best, p235)
-            p35 *= 3
-        p5 *= 5
-    return best
 
 
 def _fft_modulate(x, W):
@@ -36,7 +23,7 @@ def _fft_modulate(x, W):
     reaches no further back than sample 0, which holds for every sample the Gram weighs
     (`gregory_weights` is 0 before the support)."""
     T, L = x.shape[1], W.shape[2]
-    nfft = _fft_size(max(T, L))
+    nfft = fft_size(max(T, L))
     X = jnp.fft.rfft(x, nfft, axis=1)
     conv = jnp.fft.irfft(X[:, None, :] * jnp.fft.rfft(W, nfft, axis=2), nfft, axis=2)[:, :, :T]
     return conv.reshape(-1, T).T
