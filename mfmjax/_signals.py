@@ -37,6 +37,26 @@ def _per_input(value, K: int, name: str, default, cast):
     return tuple(cast(v) for v in value)
 
 
+DEGENERATE_CORR = 1.0 - 1e-12  # |corr(y, u_k)| above this: u_k is the output up to scale
+
+
+def _refuse_output_as_input(y, u, output_name, names):
+    """An input that is the output itself (up to an affine map: |corr| > 1 - 1e-12) makes every
+    model degenerate (y = u explains the data with any denominator): refuse it."""
+    yc = y - y.mean()
+    ny = np.linalg.norm(yc)
+    if ny == 0:
+        return
+    for k in range(u.shape[1]):
+        uc = u[:, k] - u[:, k].mean()
+        nu = np.linalg.norm(uc)
+        if nu > 0 and abs(float(yc @ uc)) / (ny * nu) > DEGENERATE_CORR:
+            raise ValueError(
+                f"Signals(): input {names[k]!r} is the output {output_name!r} itself (up to "
+                "scale and offset): every model would be degenerate; remove it from the inputs"
+            )
+
+
 class Signals(eqx.Module):
     """Validated container for one experiment (uniform sampling, MISO).
 
@@ -178,6 +198,8 @@ class Signals(eqx.Module):
                         f"Signals(): column {label!r} has a NaN or inf sample at row {row}; "
                         "remove or interpolate it before identification"
                     )
+        if _concrete(y) and _concrete(u):
+            _refuse_output_as_input(np.asarray(y), np.asarray(u), output_name, names)
         self.y, self.u, self.delays = y, u, delays
         self.dt, self.t0 = dt, float(t0)
         self.intersample, self.smooth, self.offset = intersample, smooth, bool(offset)

@@ -405,3 +405,14 @@ def test_closed_form_and_datasets_refuse_bad_arguments():
         forehearth(True)
     with pytest.raises(ValueError, match=r"simulated_experiment\(\): dt must be > 0"):
         simulated_experiment(third_order_two_input(), dt=float("nan"), n_samples=100)
+
+
+def test_output_given_as_an_input_is_refused():
+    """`identify --inputs y` in the library: an input equal to the output (or an affine image of
+    it) made a degenerate model with status ok; the data container refuses it."""
+    y = np.sin(np.linspace(0, 20, 400)) + 0.1 * np.linspace(0, 1, 400)
+    other = np.cos(np.linspace(0, 13, 400))
+    for u in (y, 2.0 * y + 5.0, np.column_stack([other, -y])):
+        with pytest.raises(ValueError, match=r"Signals\(\): input 'u\d' is the output 'y' itself"):
+            Signals(y, u, dt=0.1)
+    Signals(y, other, dt=0.1)  # an ordinary input is fine
