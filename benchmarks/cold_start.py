@@ -36,6 +36,8 @@ import time
 
 import numpy as np
 
+from mfmjax._persist import json_safe
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 T_CLI = 3000
 CLI_GRID = dict(n="1:2", N="3:5", M="3:5", h=[float(v) for v in np.linspace(40, 250, 18)])
@@ -274,7 +276,7 @@ def main():
     path = os.path.join(HERE, "results", "cold_start.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as fh:
-        json.dump(out, fh, indent=2)
+        json.dump(json_safe(out), fh, indent=2, allow_nan=False)  # no NaN: null
     print(f"saved {path}")
     shutil.rmtree(work, ignore_errors=True)
 
