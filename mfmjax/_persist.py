@@ -155,7 +155,7 @@ def _with_mf(model: Model, doc: dict) -> Model:
 
     mf = ModulatingFunction(doc["N"], doc["M"], doc["h"])
     theta = np.asarray(doc["theta"], dtype=np.float64)
-    size = model.n + 1 + sum(mk + 1 for mk in model.m) + int(model.has_offset)
+    size = model.structure.n_params + int(model.has_offset)
     if theta.shape != (size,):
         raise ValueError(
             f"theta has {theta.size} values but n={model.n}, m={list(model.m)}"
