@@ -32,6 +32,7 @@ class Estimate(eqx.Module):
     output_error: OutputErrorFit | None
     names: tuple  # free parameters, ordered as std_errors
     std_errors: np.ndarray
+    covariance: np.ndarray  # of the free parameters, ordered as names (the last stage's)
     converged: bool  # the last stage met its tolerance
     stabilised: bool  # the MFM winner had right-half-plane poles, mirrored before SRIVC
     method: str  # "srivc" or "srivc + output error"
@@ -91,11 +92,13 @@ def estimate_from_search(signals: Signals, res: SearchResult, *, polish: bool = 
     seed, was_unstable = stabilised(start)
     fit = srivc(signals, seed, max_iter=max_iter, tol=tol)
     model, names, std = fit.model, fit.names, np.asarray(fit.std_errors)
+    cov = np.asarray(fit.covariance)
     converged, method, oe = bool(fit.converged), "srivc", None
     if polish:
         oe = output_error(signals, model)
         model, names, std = oe.model, oe.names, np.asarray(oe.std_errors)
+        cov = np.asarray(oe.covariance)
         converged, method = oe.converged, "srivc + output error"
     model = model.labelled(signals.output_name, signals.input_names)
-    return Estimate(model, start, res, fit, oe, tuple(names), std, converged, was_unstable,
+    return Estimate(model, start, res, fit, oe, tuple(names), std, cov, converged, was_unstable,
                     method)
