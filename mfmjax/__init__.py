@@ -10,6 +10,14 @@ _jax.config.update("jax_enable_x64", True)
 
 from . import datasets as datasets  # noqa: E402
 from . import online as online  # noqa: E402
+from ._analysis import Comparison as Comparison  # noqa: E402
+from ._analysis import FrequencyResponse as FrequencyResponse  # noqa: E402
+from ._analysis import Residuals as Residuals  # noqa: E402
+from ._analysis import StepResponse as StepResponse  # noqa: E402
+from ._analysis import compare as compare  # noqa: E402
+from ._analysis import frequency_response as frequency_response  # noqa: E402
+from ._analysis import residuals as residuals  # noqa: E402
+from ._analysis import step_response as step_response  # noqa: E402
 from ._cache import enable_compile_cache as enable_compile_cache  # noqa: E402
 from ._cramer_rao import cramer_rao as cramer_rao  # noqa: E402
 from ._estimate import Estimate as Estimate  # noqa: E402
@@ -65,5 +73,6 @@ __all__ = [  # the public names (tests/test_fuzz.py covers each one)
     "initial_state", "kernel_weights", "load_model", "modulated_signals", "moving_final_states",
     "observe", "online", "output_error", "performance_index", "phi", "phi_integral", "phi_scaled",
     "refine", "save_model", "scores", "search", "simulate", "srivc", "state_space", "to_control",
-    "to_scipy",
+    "to_scipy", "Comparison", "FrequencyResponse", "Residuals", "StepResponse", "compare",
+    "frequency_response", "residuals", "step_response",
 ]

@@ -1,4 +1,4 @@
-"""Command line: `mfmjax identify|search|validate|online|dataset|demo ...`.
+"""Command line: `mfmjax identify|search|validate|report|online|dataset|demo ...`.
 
 A user error (a bad option, file or value) prints one line on stderr and exits with code 2; an
 unexpected internal error prints one line with a bug-report hint and exits with code 1. No
@@ -206,7 +206,7 @@ def _print_report(rep: dict) -> None:
 def _cmd_demo(args):
     from ._demo import demo
 
-    demo(args.out, args.horizon)
+    demo(args.out, args.horizon, args.mode)
 
 
 def _toml_settings(args) -> dict:
@@ -609,6 +609,42 @@ def _plot_validation(sig, k0, y, y_sim, fit, path):
     plt.close(fig)
 
 
+def _cmd_report(args):
+    """compare.png, residuals.png, step.png, bode.png and report.json for a model on a record."""
+    import mfmjax
+
+    from . import _analysis as an
+
+    model = mfmjax.load_model(args.model)
+    cov, note = an.saved_covariance(args.model, model)
+    sig = _load_signals(args)
+    window = _window(args.window, "window") if args.window else None
+    cmp = an.compare(model, sig, window, observer_window=args.observer_window)
+    res = an.residuals(model, sig, window, observer_window=args.observer_window,
+                       lags=args.lags)
+    step = an.step_response(model, covariance=cov)
+    bode = an.frequency_response(model, covariance=cov)
+    os.makedirs(args.o, exist_ok=True)
+    files = {}
+    for name, obj in (("compare", cmp), ("residuals", res), ("step", step), ("bode", bode)):
+        files[name] = os.path.join(args.o, f"{name}.png")
+        obj.plot(files[name])
+    rep = {"model": args.model, "data": args.file,
+           "window": [float(cmp.t[0]), float(cmp.t[-1])],
+           "fit": None if not math.isfinite(cmp.fit) else cmp.fit,
+           "residuals": res.to_dict(), "bands": cov is not None, "bands_note": note,
+           "figures": files}
+    from ._persist import atomic_write, json_safe
+
+    path = os.path.join(args.o, "report.json")
+    atomic_write(path, (json.dumps(json_safe(rep), indent=1, allow_nan=False) + "\n").encode())
+    print(cmp.summary())
+    print(res.summary())
+    print(note)
+    print(f"wrote {', '.join(os.path.basename(f) for f in files.values())} and report.json "
+          f"to {args.o}")
+
+
 def main(argv=None) -> int:
     parser = _Parser(prog="mfmjax", description="Modulating Function Method identification")
     parser.add_argument("--no-compile-cache", action="store_true", help="do not use the "
@@ -656,6 +692,17 @@ def main(argv=None) -> int:
     p.add_argument("--plot", help="write measured vs simulated output to this PNG")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_validate)
+    p = sub.add_parser("report", help="compare, residual, step and Bode figures and "
+                       "report.json of a saved model on a record")
+    p.add_argument("model", help="model JSON written by save_model / --save")
+    _add_data_args(p)
+    p.add_argument("-o", required=True, help="directory for the PNGs and report.json")
+    p.add_argument("--window", help="T0,T1 validation window (default: the whole record)")
+    p.add_argument("--observer-window", type=_number("observer-window", lo=0, lo_open=True),
+                   help="length of the initial-state observer (default: the whole window)")
+    p.add_argument("--lags", type=_number("lags", lo=1, integer=True), default=25,
+                   help="correlation lags of the residual tests (default 25)")
+    p.set_defaults(func=_cmd_report)
     p = sub.add_parser("online", help="on-line identification and prediction (Algorithm 1)")
     _add_data_args(p)
     p.add_argument("--config", help="TOML file of OnlineConfig settings (e.g. interval = 250)")
@@ -676,13 +723,16 @@ def main(argv=None) -> int:
     p.add_argument("--horizon", type=_number("horizon", lo=2500),
                    help="stop each experiment after this many seconds (>= 2500: the first "
                    "model needs 8 intervals of 250 s)")
+    p.add_argument("--mode", choices=["improved", "paper"], default="improved",
+                   help="improved (default: delay tracking, forecast-ranked models) or paper "
+                   "(Algorithm 1 exactly as the paper states it)")
     p.set_defaults(func=_cmd_demo)
     try:
         argv = list(sys.argv[1:] if argv is None else argv)
         no_cache = "--no-compile-cache" in argv  # accepted before or after the command
         args = parser.parse_args([a for a in argv if a != "--no-compile-cache"])
         if args.command is None:
-            raise _UserError("mfmjax: give a command: identify, search, validate, online, "
+            raise _UserError("mfmjax: give a command: identify, search, validate, report, online, "
                              "dataset, demo (see --help)")
         for name, val in vars(args).items():  # argparse turns a value "--" into []
             if isinstance(val, list):

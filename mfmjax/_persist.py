@@ -76,10 +76,24 @@ def atomic_write(path, data: bytes) -> None:
             os.close(dfd)
 
 
-def save_model(model: Model, path) -> None:
-    """Write `model` (concrete) to a JSON file (atomically: see `atomic_write`)."""
+def save_model(model: Model, path, *, covariance=None) -> None:
+    """Write `model` (concrete) to a JSON file (atomically: see `atomic_write`).
+
+    `covariance` (optional): of the free parameters (`Estimate.covariance`,
+    `OutputErrorFit.covariance`), stored with their names for `mfmjax report`'s bands;
+    `load_model` ignores it, and files without it stay valid."""
     require_x64("save_model")
     doc = {"format": FORMAT, "version": VERSION, **model.to_dict()}
+    if covariance is not None:
+        from ._output_error import free_parameters
+
+        names = free_parameters(model)[0]
+        cov = np.asarray(covariance, dtype=np.float64)
+        if cov.shape != (len(names), len(names)) or not np.all(np.isfinite(cov)):
+            raise ValueError(f"save_model(): covariance must be a finite ({len(names)}, "
+                             f"{len(names)}) matrix ordered as {list(names)} (got shape "
+                             f"{cov.shape})")
+        doc["covariance"] = {"names": list(names), "matrix": cov.tolist()}
     atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
 
 

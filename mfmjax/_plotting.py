@@ -64,3 +64,92 @@ def plot_inputs(t, u, names, path, *, extra=None, extra_name: str = "", title: s
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+# -- analysis figures (compare, residuals, step, Bode; see mfmjax._analysis) --------------------
+
+
+def plot_compare(cmp, path) -> None:
+    """Measured vs simulated output on the window, the fit % in the legend (MATLAB compare)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(9, 3.5), dpi=100)
+    ax.plot(cmp.t, cmp.y, lw=1.0, color="#1f3b73", label=f"measured {cmp.output_name}")
+    fit = "fit undefined" if not np.isfinite(cmp.fit) else f"fit {cmp.fit:.1f} %"
+    ax.plot(cmp.t, cmp.y_sim, lw=1.0, color="#d2501e", label=f"simulated ({fit})")
+    ax.set_xlabel("time")
+    ax.set_ylabel(cmp.output_name)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_residuals(res, path) -> None:
+    """Auto-correlation of the residuals and cross-correlation with each input, 99 % bounds."""
+    plt = _pyplot()
+    K = len(res.input_names)
+    fig, axes = plt.subplots(1 + K, 1, figsize=(8, 2.4 * (1 + K) + 0.4), dpi=100)
+    axes = np.atleast_1d(axes)
+    ax = axes[0]
+    ax.stem(res.lags, res.auto, basefmt=" ")
+    ax.axhspan(-res.auto_bound, res.auto_bound, color="#d6e4f5", lw=0, zorder=0)
+    ax.set_title(f"auto-correlation of the residuals of {res.output_name}: "
+                 f"{'white' if res.white else 'NOT white'} (99 %)", fontsize=9)
+    ax.set_xlabel("lag")
+    for k, name in enumerate(res.input_names):
+        ax = axes[1 + k]
+        ok = res.independent[k]
+        ax.stem(res.cross_lags, res.cross[k], basefmt=" ")
+        if np.isfinite(res.cross_bound[k]):
+            ax.axhspan(-res.cross_bound[k], res.cross_bound[k], color="#d6e4f5", lw=0, zorder=0)
+        verdict = "undefined" if ok is None else ("independent" if ok else "NOT independent")
+        ax.set_title(f"cross-correlation with {name}: {verdict} (99 %)", fontsize=9)
+        ax.set_xlabel("lag (positive: input leads)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_step(step, path) -> None:
+    """Step response of each input, with its 99 % band when the response carries one."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(8, 3.5), dpi=100)
+    for k, name in enumerate(step.input_names):
+        (line,) = ax.plot(step.t, step.y[k], lw=1.2, label=f"step of {name}")
+        if step.std is not None:
+            ax.fill_between(step.t, step.lower[k], step.upper[k], color=line.get_color(),
+                            alpha=0.25, lw=0, label="99 % band" if k == 0 else None)
+    ax.set_xlabel("time")
+    ax.set_ylabel(step.output_name)
+    ax.set_title("step response" + ("" if step.std is not None else " (no covariance: no band)"),
+                 fontsize=9)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_bode(fr, path) -> None:
+    """Bode magnitude (dB) and phase (deg) per input, with 99 % bands when available."""
+    plt = _pyplot()
+    fig, (am, ap) = plt.subplots(2, 1, figsize=(8, 5.5), dpi=100, sharex=True)
+    for k, name in enumerate(fr.input_names):
+        (line,) = am.semilogx(fr.w, fr.mag_db[k], lw=1.2, label=name)
+        ap.semilogx(fr.w, fr.phase_deg[k], lw=1.2, color=line.get_color())
+        if fr.mag_db_std is not None:
+            z = 2.5758293035489004
+            am.fill_between(fr.w, fr.mag_db[k] - z * fr.mag_db_std[k],
+                            fr.mag_db[k] + z * fr.mag_db_std[k], color=line.get_color(),
+                            alpha=0.25, lw=0, label="99 % band" if k == 0 else None)
+            ap.fill_between(fr.w, fr.phase_deg[k] - z * fr.phase_deg_std[k],
+                            fr.phase_deg[k] + z * fr.phase_deg_std[k], color=line.get_color(),
+                            alpha=0.25, lw=0)
+    am.set_ylabel("magnitude [dB]")
+    ap.set_ylabel("phase [deg]")
+    ap.set_xlabel("frequency [rad per time unit]")
+    am.set_title("Bode diagram" + ("" if fr.mag_db_std is not None else
+                                   " (no covariance: no band)"), fontsize=9)
+    am.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

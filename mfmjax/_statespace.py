@@ -55,18 +55,50 @@ def realisation(a, bs, n):
     return StateSpace(A, B, C, D), live
 
 
-def to_scipy(model: Model):
-    """`scipy.signal.StateSpace` of the model (delays are not representable there: ignored)."""
+def _delays(model: Model):
+    import numpy as np
+
+    return np.asarray(model.delays, dtype=np.float64).reshape(-1)
+
+
+def to_scipy(model: Model, *, ignore_delays: bool = False):
+    """`scipy.signal.StateSpace` of the model (inputs: the K inputs, then the offset's constant
+    input when the model has one).
+
+    SciPy's LTI systems cannot carry a transport delay: a model with a nonzero delay raises a
+    ValueError that says what to do, unless `ignore_delays=True` (the delay-free part
+    $B_k(s)/A(s)$, what earlier versions returned silently). For the delays use
+    `to_control(model, pade_order=...)` (a Pade approximation) or shift the inputs yourself.
+    """
     require_x64("to_scipy")
     import numpy as np
     from scipy import signal
 
+    if not isinstance(ignore_delays, bool):
+        raise TypeError(f"to_scipy(): ignore_delays must be True or False (got {ignore_delays!r})")
+    tau = _delays(model)
+    if np.any(tau != 0) and not ignore_delays:
+        raise ValueError(
+            f"to_scipy(): scipy.signal systems cannot carry the model's delays {tau.tolist()}; "
+            "use to_control(model, pade_order=5) for a Pade approximation, or "
+            "to_scipy(model, ignore_delays=True) for the delay-free part"
+        )
     ss = state_space(model)
     return signal.StateSpace(*(np.asarray(M) for M in (ss.A, ss.B, ss.C, ss.D)))
 
 
-def to_control(model: Model):
-    """python-control `StateSpace` (requires the optional `control` package; delays ignored)."""
+def to_control(model: Model, *, pade_order: int = 5):
+    r"""python-control `StateSpace` of the model, delays included as Pade approximations.
+
+    Input k's delay $e^{-s\tau_k}$ becomes python-control's `pade(tau_k, pade_order)` in series
+    before the plant (python-control 0.10 has no exact delay element). A Pade approximation is
+    all-pass (exact magnitude); its phase error, measured here, is below 0.001 deg for
+    $\omega\tau \le 2$ and 0.15 deg at $\omega\tau = 5$ with the default order 5 (37 deg at
+    $\omega\tau = 10$; order 7: 2 deg, order 10: 0.002 deg there). Each delayed input adds
+    `pade_order` states. `pade_order=0` drops the delays (the delay-free
+    part). Inputs are named after the model's (plus "offset" for the offset's constant input);
+    requires the optional `control` package.
+    """
     require_x64("to_control")
     try:
         import control
@@ -74,5 +106,22 @@ def to_control(model: Model):
         raise ImportError("to_control() needs python-control: pip install control") from err
     import numpy as np
 
+    from ._boundary import integer
+
+    pade_order = integer("to_control", "pade_order", pade_order, lo=0, hi=20,
+                         fix="use 3..10 (higher orders are ill-conditioned)")
     ss = state_space(model)
-    return control.ss(*(np.asarray(M) for M in (ss.A, ss.B, ss.C, ss.D)))
+    names = list(model.input_names) + (["offset"] if model.has_offset else [])
+    plant = control.ss(*(np.asarray(M) for M in (ss.A, ss.B, ss.C, ss.D)))
+    tau = _delays(model)
+    if pade_order == 0 or not np.any(tau != 0):
+        return control.ss(plant, inputs=names, outputs=[model.output_name])
+    blocks = []
+    for k in range(len(names)):
+        if k < tau.size and tau[k] != 0:
+            num, den = control.pade(float(tau[k]), pade_order)
+            blocks.append(control.tf2ss(num, den))
+        else:
+            blocks.append(control.ss([], [], [], [[1.0]]))
+    delayed = control.series(control.append(*blocks), plant)
+    return control.ss(delayed, inputs=names, outputs=[model.output_name])

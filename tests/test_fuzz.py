@@ -406,6 +406,41 @@ def test_fuzz_observers(window, which):
         assert np.all(np.isfinite(np.asarray(out)))
 
 
+@fuzzes("compare", "Comparison", "residuals", "Residuals")
+@FEW
+@given(window=windows, lags=st.one_of(st.integers(-1, 60), junk))
+def test_fuzz_analysis(window, lags):
+    ok, cmp = outcome(lambda: mfmjax.compare(plant(), record(), window),
+                      ["compare()", "observe()"])
+    if ok:
+        assert isinstance(cmp, mfmjax.Comparison) and np.all(np.isfinite(cmp.y_sim))
+    ok, res = outcome(lambda: mfmjax.residuals(plant(), record(), window, lags=lags),
+                      ["residuals()", "observe()"])
+    if ok:
+        assert isinstance(res, mfmjax.Residuals) and isinstance(res.white, bool)
+        assert np.all(np.isfinite(res.auto)) and np.all(np.isfinite(res.cross))
+
+
+@fuzzes("step_response", "StepResponse", "frequency_response", "FrequencyResponse")
+@FEW
+@given(coef=model_strategy(), var=st.one_of(st.floats(0.0, 1.0), junk))
+def test_fuzz_responses(coef, var):
+    a0, a1, b0 = coef
+    ok, model = outcome(lambda: mfmjax.Model.from_coefficients([a0, a1, 1.0], [[b0]]),
+                        ["Model.from_coefficients()"])
+    if not ok:
+        return
+    cov = var * np.eye(3) if isinstance(var, float) and math.isfinite(var) else var
+    ok, step = outcome(lambda: mfmjax.step_response(model, covariance=cov),
+                       ["step_response()"])
+    if ok:
+        assert np.all(np.isfinite(step.y)) and (step.std is None or np.all(np.isfinite(step.std)))
+    ok, fr = outcome(lambda: mfmjax.frequency_response(model, covariance=cov),
+                     ["frequency_response()"])
+    if ok:
+        assert np.all(np.isfinite(fr.mag_db)) and np.all(np.isfinite(fr.phase_deg))
+
+
 @fuzzes("moving_final_states")
 @FAST
 @given(T_ob=st.one_of(st.just(2.0), junk),

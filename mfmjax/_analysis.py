@@ -1,0 +1,495 @@
+r"""What a practitioner checks after identification: compare, residual analysis, step and Bode
+responses with uncertainty bands (the delta method on the parameter covariance).
+
+Residual analysis follows MATLAB's `resid` and Ljung (System Identification, 2nd ed., 16.6).
+On a window of $N$ samples, $e = y - y_{sim}$ with the state from the initial-state observer
+(eq. 14). With $\bar e$, $\bar u_k$ the mean-removed residual and inputs,
+$R_e(\tau) = \frac1N \sum_t \bar e(t)\bar e(t-\tau)$,
+$R_{eu}(\tau) = \frac1N \sum_t \bar e(t)\bar u(t-\tau)$ (sums over the samples where both
+indices exist), $r_{ee} = R_e / R_e(0)$, $r_{ue} = R_{eu} / \sqrt{R_e(0) R_u(0)}$. A positive
+lag $\tau$ correlates the residual with past inputs (unmodelled dynamics); a negative one with
+future inputs (feedback).
+
+Bounds (99 %, $z = 2.5758$, the standard normal's 0.995 quantile): $\pm z/\sqrt N$ for
+$r_{ee}(\tau)$; $\pm z\sqrt{P_1/N}$ for $r_{ue}(\tau)$ with $P_1 = \sum_{k=-L}^{L}
+r_{ee}(k) r_{uu}(k)$ (MATLAB's bound: Bartlett's variance of the cross-correlation of two
+independent series). The verdicts are portmanteau tests at the 1 % level, not "every lag
+inside its bound" (25 lags of white noise would fail that 22 % of the time):
+whiteness $Q = N\sum_{\tau=1}^{L} r_{ee}(\tau)^2 \le \chi^2_{0.99}(L)$ (Box-Pierce);
+independence of input $k$: $Q = c^T S^{+} c \le \chi^2_{0.99}(\mathrm{rank}\,S)$ with $c$ the
+$2L+1$ cross-correlations and $S_{ij} = \frac1N\sum_{k=-L}^{L} r_{ee}(k)\,r_{uu}(k + \tau_j -
+\tau_i)$ their Bartlett covariance (diagonal $P_1/N$; eigenvalues below $10^{-10}$ of the
+largest dropped).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _boundary as _b
+from ._model import Model
+from ._observers import fit_percent, observe, validation_window
+from ._output_error import free_parameters, with_parameters
+from ._signals import Signals
+from ._simulate import simulate_status
+
+LEVEL = 0.99
+Z99 = 2.5758293035489004  # standard normal 0.995 quantile: a two-sided 99 % band is +-Z99 sigma
+
+
+def _chi2_99(dof: int) -> float:
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(LEVEL, dof))
+
+
+# -- compare -----------------------------------------------------------------------------------
+
+
+class Comparison(eqx.Module):
+    """Measured and simulated output on a window (state from the observer) and the fit %."""
+
+    t: np.ndarray
+    y: np.ndarray
+    y_sim: np.ndarray
+    fit: float  # `fit_percent(y, y_sim)` (NaN for a constant y)
+    output_name: str = eqx.field(static=True)
+
+    def summary(self) -> str:
+        return (f"compare {self.output_name} on {self.t[0]:g} .. {self.t[-1]:g} "
+                f"({self.t.size} samples): fit {self.fit:.2f} %")
+
+    def plot(self, path) -> None:
+        """Write measured vs simulated output with the fit % as a PNG to `path`."""
+        from ._plotting import plot_compare
+
+        plot_compare(self, path)
+
+
+def _check(model, signals, fn):
+    _b.require_x64(fn)
+    if not isinstance(model, Model):
+        raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}")
+    if not isinstance(signals, Signals):
+        raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}")
+
+
+def _simulated(model, signals, window, observer_window, fn):
+    """(t, y, y_sim, first sample) on the window, the state from the initial-state observer."""
+    _check(model, signals, fn)
+    k0, length, _ = validation_window(signals, window, observer_window, model.n, fn, "window")
+    obs = observe(model, signals, window, observer_window=observer_window)
+    y = np.asarray(signals.y)[k0 : k0 + length]
+    t = signals.t0 + signals.dt * np.arange(k0, k0 + length)
+    return t, y, np.asarray(obs.y_sim), k0
+
+
+def compare(model: Model, signals: Signals, window=None, *, observer_window=None) -> Comparison:
+    """Measured vs simulated output on `window` (default: the record) and the fit % of MATLAB's
+    `compare` (`fit_percent`); the state at the window start from the observer (eq. 14) on the
+    first `observer_window` time units (default: the whole window). **Returns:** `Comparison`."""
+    t, y, y_sim, _ = _simulated(model, signals, window, observer_window, "compare")
+    fit = float(fit_percent(y, y_sim)) if np.ptp(y) > 0 else math.nan
+    return Comparison(t, y, y_sim, fit, signals.output_name)
+
+
+# -- residual analysis -------------------------------------------------------------------------
+
+
+class Residuals(eqx.Module):
+    """Residual analysis (MATLAB `resid`): see the module docstring for every definition."""
+
+    t: np.ndarray  # (N,) times of the residual samples
+    e: np.ndarray  # (N,) y - y_sim
+    lags: np.ndarray  # (L+1,) 0..L
+    auto: np.ndarray  # (L+1,) r_ee(tau), auto[0] = 1
+    auto_bound: float  # z / sqrt(N)
+    whiteness_stat: float  # Box-Pierce Q
+    whiteness_critical: float  # chi2_0.99(L)
+    white: bool
+    cross_lags: np.ndarray  # (2L+1,) -L..L
+    cross: np.ndarray  # (K, 2L+1) r_ue(tau) per input
+    cross_bound: np.ndarray  # (K,) z sqrt(P1 / N)
+    independence_stat: np.ndarray  # (K,)
+    independence_critical: np.ndarray  # (K,)
+    independent: tuple  # per input: True / False (None when the input is constant)
+    fit: float
+    output_name: str = eqx.field(static=True)
+    input_names: tuple = eqx.field(static=True)
+
+    @property
+    def ok(self) -> bool:
+        """Both tests pass (whiteness and independence from every non-constant input)."""
+        return bool(self.white) and all(v is not False for v in self.independent)
+
+    def summary(self) -> str:
+        N, L = self.e.size, self.lags.size - 1
+        out = [f"residual analysis of {self.output_name}: N = {N}, lags 0..{L}, 99 % level, "
+               f"fit {self.fit:.2f} %, mean(e) = {np.mean(self.e):.4g}, "
+               f"std(e) = {np.std(self.e):.4g}",
+               f"whiteness: Q = {self.whiteness_stat:.2f} vs chi2_0.99({L}) = "
+               f"{self.whiteness_critical:.2f}: {'PASS' if self.white else 'FAIL'} "
+               f"({int(np.sum(np.abs(self.auto[1:]) > self.auto_bound))} of {L} lags outside "
+               f"+-{self.auto_bound:.3g})"]
+        for k, name in enumerate(self.input_names):
+            ok = self.independent[k]
+            verdict = "undefined (constant input)" if ok is None else ("PASS" if ok else "FAIL")
+            outside = int(np.sum(np.abs(self.cross[k]) > self.cross_bound[k]))
+            out.append(f"independence from {name}: Q = {self.independence_stat[k]:.2f} vs "
+                       f"{self.independence_critical[k]:.2f}: {verdict} ({outside} of "
+                       f"{self.cross_lags.size} lags outside +-{self.cross_bound[k]:.3g})")
+        return "\n".join(out)
+
+    def to_dict(self) -> dict:
+        """JSON-ready verdicts and statistics (no sample arrays)."""
+        return {
+            "N": int(self.e.size), "lags": int(self.lags.size - 1), "level": LEVEL,
+            "fit": self.fit, "mean_e": float(np.mean(self.e)), "std_e": float(np.std(self.e)),
+            "whiteness": {"pass": bool(self.white), "Q": float(self.whiteness_stat),
+                          "critical": float(self.whiteness_critical),
+                          "bound": float(self.auto_bound)},
+            "independence": {name: {"pass": self.independent[k],
+                                    "Q": float(self.independence_stat[k]),
+                                    "critical": float(self.independence_critical[k]),
+                                    "bound": float(self.cross_bound[k])}
+                             for k, name in enumerate(self.input_names)},
+        }
+
+    def plot(self, path) -> None:
+        """Write the auto- and cross-correlation with their 99 % bounds as a PNG to `path`."""
+        from ._plotting import plot_residuals
+
+        plot_residuals(self, path)
+
+
+def _xcorr(a, b, lags):
+    """(1/N) sum_t a(t) b(t - tau) for tau in `lags` (sums over the valid samples), by FFT."""
+    N = a.size
+    size = 1 << (2 * N - 1).bit_length()
+    full = np.fft.irfft(np.fft.rfft(a, size) * np.conj(np.fft.rfft(b, size)), size)
+    return np.array([full[tau % size] for tau in lags]) / N  # circular index: no wrap (size >= 2N)
+
+
+def residual_tests(e, u, lags: int):
+    """The statistics of `Residuals` from residuals e (N,) and inputs u (N, K) (NumPy)."""
+    N, K = e.size, u.shape[1]
+    eb = e - e.mean()
+    Re0 = float(eb @ eb) / N
+    tau = np.arange(lags + 1)
+    auto = _xcorr(eb, eb, tau) / Re0 if Re0 > 0 else np.full(lags + 1, np.nan)
+    Q = float(N * np.sum(auto[1:] ** 2))
+    xl = np.arange(-lags, lags + 1)
+    r_ee_sym = np.concatenate([auto[:0:-1], auto])  # r_ee(k), k = -L..L
+    cross = np.full((K, xl.size), np.nan)
+    bound = np.full(K, np.nan)
+    stat = np.full(K, np.nan)
+    crit = np.full(K, np.nan)
+    indep = []
+    for k in range(K):
+        ub = u[:, k] - u[:, k].mean()
+        Ru0 = float(ub @ ub) / N
+        if not (Ru0 > 0 and Re0 > 0):
+            indep.append(None)
+            continue
+        cross[k] = _xcorr(eb, ub, xl) / math.sqrt(Re0 * Ru0)
+        far = min(3 * lags, N - 1)
+        r_uu = np.zeros(3 * lags + 1)
+        r_uu[: far + 1] = _xcorr(ub, ub, np.arange(far + 1)) / Ru0
+        P1 = float(np.sum(r_ee_sym * r_uu[np.abs(xl)]))
+        bound[k] = Z99 * math.sqrt(max(P1, 0.0) / N)
+        d = xl[None, :] - xl[:, None]  # tau_j - tau_i
+        S = np.einsum("k,ijk->ij", r_ee_sym, r_uu[np.abs(xl[None, None, :] + d[:, :, None])]) / N
+        lam, V = np.linalg.eigh(0.5 * (S + S.T))
+        keep = lam > 1e-10 * lam.max()
+        proj = V[:, keep].T @ cross[k]
+        stat[k] = float(np.sum(proj**2 / lam[keep]))
+        crit[k] = _chi2_99(int(keep.sum()))
+        indep.append(bool(stat[k] <= crit[k]))
+    return dict(auto=auto, auto_bound=Z99 / math.sqrt(N), whiteness_stat=Q,
+                whiteness_critical=_chi2_99(lags), white=bool(Q <= _chi2_99(lags)),
+                cross_lags=xl, cross=cross, cross_bound=bound, independence_stat=stat,
+                independence_critical=crit, independent=tuple(indep), lags=tau)
+
+
+def residuals(model: Model, signals: Signals, window=None, *, observer_window=None,
+              lags: int = 25) -> Residuals:
+    r"""Residual analysis of `model` on `window` of `signals`, as MATLAB's `resid`.
+
+    $e = y - y_{sim}$ with the state at the window start from the initial-state observer
+    (eq. 14, on the first `observer_window` time units; default the whole window). Its
+    auto-correlation $r_{ee}(\tau)$, $\tau = 0..L$, and cross-correlation $r_{ue}(\tau)$ with
+    each input, $\tau = -L..L$, with 99 % bounds and a whiteness and an independence test
+    (definitions, bounds and tests in the module docstring of `mfmjax._analysis`).
+
+    **Arguments:** `lags` = L, an integer in 1..N/4.
+
+    **Returns:** `Residuals` (`white`, `independent`, `ok`, `summary()`, `plot(path)`).
+    """
+    _check(model, signals, "residuals")
+    if isinstance(lags, bool) or not isinstance(lags, (int, np.integer)) or lags < 1:
+        raise ValueError(f"residuals(): lags must be an integer >= 1 (got lags={lags!r})")
+    t, y, y_sim, k0 = _simulated(model, signals, window, observer_window, "residuals")
+    N = y.size
+    if lags > N // 4:
+        raise ValueError(f"residuals(): lags={lags} is more than a quarter of the {N} residual "
+                         f"samples; use lags <= {N // 4} or a longer window")
+    u = np.asarray(signals.u)[k0 : k0 + N]
+    e = y - y_sim
+    stats = residual_tests(e, u, int(lags))
+    fit = float(fit_percent(y, y_sim)) if np.ptp(y) > 0 else math.nan
+    return Residuals(t=t, e=e, fit=fit, output_name=signals.output_name,
+                     input_names=tuple(signals.input_names), **stats)
+
+
+# -- responses with bands ----------------------------------------------------------------------
+
+
+def model_and_covariance(obj, covariance, fn: str):
+    """(model, covariance or None) from a Model (+ `covariance`) or a fit with `.covariance`
+    (`Estimate`, `OutputErrorFit`, `SrivcFit`), checked against `free_parameters(model)`."""
+    _b.require_x64(fn)
+    names = None
+    if isinstance(obj, Model):
+        model = obj
+    elif isinstance(getattr(obj, "model", None), Model) and hasattr(obj, "covariance"):
+        model = obj.model
+        names = tuple(getattr(obj, "names", ()) or ()) or None
+        if covariance is None:
+            covariance = obj.covariance
+    else:
+        raise TypeError(f"{fn}(): model must be a Model or a fit with a covariance (Estimate, "
+                        f"OutputErrorFit, SrivcFit), got {type(obj).__name__}")
+    free, _ = free_parameters(model)
+    if names is not None and tuple(names) != free:
+        raise ValueError(f"{fn}(): the fit's parameters {list(names)} are not the model's free "
+                         f"parameters {list(free)}")
+    if covariance is None:
+        return model, None
+    cov = _b.array(fn, "covariance", covariance, ndim=2)
+    p = len(free)
+    if cov.shape != (p, p):
+        raise ValueError(f"{fn}(): covariance must be ({p}, {p}), ordered as the free parameters "
+                         f"{list(free)} (got shape {cov.shape})")
+    if np.any(np.diag(cov) < 0) or not np.allclose(cov, cov.T, rtol=1e-8, atol=0.0):
+        raise ValueError(f"{fn}(): covariance must be symmetric with a non-negative diagonal")
+    return model, np.asarray(cov, dtype=np.float64)
+
+
+def _poles(model):
+    return np.roots(np.asarray(model.a, dtype=np.float64)[::-1])
+
+
+def _value_and_std(f, theta, cov):
+    """f(theta) and, with a covariance, the delta method's sqrt(diag(J cov J^T)) (J = jacfwd)."""
+    value = f(theta)
+    if cov is None:
+        return value, None
+    J = jax.jacfwd(f)(theta).reshape(-1, theta.shape[0])
+    var = jnp.einsum("ij,jk,ik->i", J, cov, J)
+    return value, jnp.sqrt(jnp.maximum(var, 0.0)).reshape(value.shape)
+
+
+class StepResponse(eqx.Module):
+    """Unit-step response of each input from rest (offset excluded), with a 99 % band
+    (value +- 2.576 std, delta method) when a covariance was given (else `std` is None)."""
+
+    t: np.ndarray  # (T,)
+    y: np.ndarray  # (K, T)
+    std: np.ndarray | None  # (K, T)
+    output_name: str = eqx.field(static=True)
+    input_names: tuple = eqx.field(static=True)
+
+    @property
+    def lower(self):
+        return None if self.std is None else self.y - Z99 * self.std
+
+    @property
+    def upper(self):
+        return None if self.std is None else self.y + Z99 * self.std
+
+    def plot(self, path) -> None:
+        """Write the step responses (with bands when available) as a PNG to `path`."""
+        from ._plotting import plot_step
+
+        plot_step(self, path)
+
+
+def _step_base(model):
+    """The model as the step programs see it: no labels, zoh inputs, offset 0."""
+    from ._pytree import replace_fields
+
+    base = eqx.tree_at(lambda m: m.offset, model.unlabelled(), jnp.asarray(0.0))
+    return replace_fields(base, intersample=("zoh",) * model.n_inputs)
+
+
+@eqx.filter_jit
+def _step_program(base, theta, u, cov, dt):
+    """Step response y (T,) for inputs u (T+1, K) that step at sample 1 (inputs before sample
+    0 are held at u[0] = 0, so delays see rest), and its delta-method std."""
+    def f(th):
+        m = with_parameters(base, th)
+        m = eqx.tree_at(lambda q: q.offset, m, jnp.zeros_like(m.offset))
+        y, _, _ = simulate_status(m, u, jnp.zeros(base.n), dt)
+        return y[1:]  # y at t_j - dt = the step response at j dt, j = 0..T-1
+    return _value_and_std(f, theta, cov)
+
+
+def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) -> StepResponse:
+    r"""Unit-step response of each input (from rest, offset excluded, delays included) by the
+    exact simulation, on `n_points` times 0..`t_final` (default: 7 time constants of the
+    slowest stable pole plus the largest delay), with a 99 % band $\pm 2.576\sigma$ from the
+    delta method ($\sigma^2 = \mathrm{diag}(J \Sigma J^T)$, $J$ the Jacobian of the response in
+    the free parameters by `jax.jacfwd`, $\Sigma$ their covariance; delays count as known).
+
+    **Arguments:** `model`: a `Model`, or a fit carrying its covariance (`Estimate`,
+    `OutputErrorFit`, `SrivcFit`); `covariance`: of `free_parameters(model)` (a_0..a_{n-1},
+    b_kj, offset), overrides the fit's. **Returns:** `StepResponse`.
+    """
+    model, cov = model_and_covariance(model, covariance, "step_response")
+    n_points = _b.integer("step_response", "n_points", n_points, lo=2, hi=100_000)
+    if t_final is None:
+        p = _poles(model)
+        stable = p[p.real < 0]
+        scale = (1.0 / np.min(-stable.real)) if stable.size else (
+            1.0 / max(np.min(np.abs(p)), 1e-300) if np.any(p != 0) else 1.0)
+        t_final = 7.0 * scale + float(np.max(np.asarray(model.delays), initial=0.0))
+    t_final = _b.number("step_response", "t_final", t_final, lo=0, lo_open=True,
+                        fix="give the duration in the model's time unit")
+    dt = t_final / (n_points - 1)
+    _, theta0 = free_parameters(model)
+    base, ys, stds = _step_base(model), [], []
+    for k in range(model.n_inputs):
+        u = np.zeros((n_points + 1, model.n_inputs))
+        u[1:, k] = 1.0
+        y, sd = _step_program(base, jnp.asarray(theta0), jnp.asarray(u),
+                              None if cov is None else jnp.asarray(cov), dt)
+        ys.append(np.asarray(y))
+        if sd is not None:
+            stds.append(np.asarray(sd))
+    y = np.stack(ys) if ys else np.zeros((0, n_points))
+    if not np.all(np.isfinite(y)):
+        raise ValueError("step_response(): the response overflows float64 (unstable model); "
+                         "give a shorter t_final")
+    if stds and not all(np.all(np.isfinite(sd)) for sd in stds):
+        raise ValueError("step_response(): the band overflows float64 (the response's "
+                         f"sensitivity to the parameters over t_final={t_final:g}); give a "
+                         "shorter t_final")
+    return StepResponse(np.arange(n_points) * dt, y, np.stack(stds) if cov is not None and stds
+                        else None, model.output_name, tuple(model.input_names))
+
+
+class FrequencyResponse(eqx.Module):
+    r"""$H_k(j\omega) = B_k(j\omega) / A(j\omega)\, e^{-j\omega\tau_k}$ per input, magnitude in
+    dB and unwrapped phase in degrees, with 99 % bands ($\pm 2.576\sigma$, delta method) on both
+    when a covariance was given (else the std fields are None)."""
+
+    w: np.ndarray  # (W,) rad per time unit
+    H: np.ndarray  # (K, W) complex
+    mag_db: np.ndarray  # (K, W)
+    phase_deg: np.ndarray  # (K, W)
+    mag_db_std: np.ndarray | None
+    phase_deg_std: np.ndarray | None
+    output_name: str = eqx.field(static=True)
+    input_names: tuple = eqx.field(static=True)
+
+    def plot(self, path) -> None:
+        """Write the Bode diagram (with bands when available) as a PNG to `path`."""
+        from ._plotting import plot_bode
+
+        plot_bode(self, path)
+
+
+@eqx.filter_jit
+def _freq_program(base, theta, w, cov, k):
+    """(|H_k| in dB, angle of B_k/A in rad) (2, W) at w and its delta-method std (the delay
+    term is exact and known: added outside)."""
+    s = 1j * w
+
+    def f(th):
+        m = with_parameters(base, th)
+        A = jnp.polyval(m.a[::-1].astype(jnp.complex128), s)
+        B = jnp.polyval(m.b[k][::-1].astype(jnp.complex128), s)
+        H = B / A
+        return jnp.stack([20.0 * jnp.log10(jnp.abs(H)), jnp.angle(H)])
+    return _value_and_std(f, theta, cov)
+
+
+def frequency_response(model, w=None, *, covariance=None, n_points: int = 400):
+    r"""Frequency response of each input's transfer function $B_k(s)/A(s)\,e^{-s\tau_k}$ at
+    `w` (rad per time unit; default `n_points` log-spaced from 0.01x the smallest to 100x the
+    largest nonzero pole or zero magnitude), with 99 % bands on magnitude (dB) and phase (deg)
+    from the delta method (`jax.jacfwd` in the free parameters; delays count as known).
+
+    **Arguments:** as `step_response`. **Returns:** `FrequencyResponse`.
+    """
+    model, cov = model_and_covariance(model, covariance, "frequency_response")
+    if w is None:
+        n_points = _b.integer("frequency_response", "n_points", n_points, lo=2, hi=100_000)
+        roots = [_poles(model)] + [np.roots(np.asarray(bk)[::-1]) for bk in model.b]
+        mags = np.abs(np.concatenate(roots))
+        mags = mags[(mags > 0) & np.isfinite(mags)]
+        lo, hi = (mags.min(), mags.max()) if mags.size else (1.0, 1.0)
+        w = np.logspace(np.log10(0.01 * lo), np.log10(100 * hi), n_points)
+    w = _b.array("frequency_response", "w", w, ndim=1)
+    if w.size < 1 or np.any(w <= 0):
+        raise ValueError("frequency_response(): w must hold frequencies > 0 (rad per time unit)")
+    w = np.asarray(w, dtype=np.float64)
+    _, theta0 = free_parameters(model)
+    delays = np.asarray(model.delays, dtype=np.float64)
+    Hs, mags, phases, mstd, pstd = [], [], [], [], []
+    for k in range(model.n_inputs):
+        val, sd = _freq_program(model.unlabelled(), jnp.asarray(theta0), jnp.asarray(w),
+                                None if cov is None else jnp.asarray(cov), k)
+        mag, ang = np.asarray(val)
+        if not (np.all(np.isfinite(mag)) and np.all(np.isfinite(ang))):
+            raise ValueError(f"frequency_response(): the response of input "
+                             f"{model.input_names[k]!r} is zero or infinite at some w (its "
+                             "magnitude in dB is not finite); check b_k and the poles on the "
+                             "imaginary axis, or give other frequencies w")
+        phase = np.unwrap(ang) - w * delays[k]
+        mags.append(mag)
+        phases.append(np.degrees(phase))
+        Hs.append(10 ** (mag / 20) * np.exp(1j * phase))
+        if sd is not None:
+            sd = np.asarray(sd)
+            if not np.all(np.isfinite(sd)):
+                raise ValueError("frequency_response(): the band is not finite (the response's "
+                                 "sensitivity to the parameters overflows); check the model")
+            mstd.append(sd[0])
+            pstd.append(np.degrees(sd[1]))
+    K = model.n_inputs
+    empty = np.zeros((K, w.size))
+    return FrequencyResponse(
+        w, np.stack(Hs) if K else empty.astype(complex), np.stack(mags) if K else empty,
+        np.stack(phases) if K else empty,
+        (np.stack(mstd) if K else empty) if cov is not None else None,
+        (np.stack(pstd) if K else empty) if cov is not None else None,
+        model.output_name, tuple(model.input_names))
+
+
+def saved_covariance(path, model: Model):
+    """(covariance or None, a sentence saying which) from a model file written by `save_model`
+    (its optional "covariance" entry, checked against the model's free parameters)."""
+    import json
+
+    with open(path, "rb") as fh:
+        doc = json.loads(fh.read().decode("utf-8"))
+    entry = doc.get("covariance") if isinstance(doc, dict) else None
+    if entry is None:
+        return None, ("no bands: the model file has no covariance (save it with "
+                      "save_model(model, path, covariance=estimate.covariance))")
+    free = list(free_parameters(model)[0])
+    try:
+        names, cov = list(entry["names"]), np.asarray(entry["matrix"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"{path}: the covariance entry needs 'names' and a numeric "
+                         "'matrix'") from None
+    if names != free or cov.shape != (len(free), len(free)) or not np.all(np.isfinite(cov)):
+        raise ValueError(f"{path}: the covariance is not a finite matrix over the model's free "
+                         f"parameters {free} (got names {names}, shape {cov.shape})")
+    return cov, "bands: 99 % (+-2.576 sigma, delta method on the saved covariance)"
