@@ -1,0 +1,314 @@
+"""Residual analysis, compare, step / frequency responses with bands, delay-keeping export.
+
+Each quantity is checked against its plain NumPy (or SciPy) definition written below."""
+
+from __future__ import annotations
+
+import functools
+import math
+import types
+
+import numpy as np
+import pytest
+from scipy import signal
+from scipy.stats import chi2
+
+import mfmjax
+from mfmjax import Model, Signals
+from mfmjax._analysis import Z99, residual_tests
+
+DT, T, TAU = 0.05, 1500, 0.2
+A_TRUE, B_TRUE = [1.0, 0.8, 1.0], [[1.0, 0.3]]
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def _model(a=A_TRUE, b=B_TRUE, tau=TAU):
+    return Model.from_coefficients(a, b, delays=[tau], intersample=["zoh"])
+
+
+@functools.cache
+def record() -> Signals:
+    """The true model driven by white zoh noise, plus white output noise (seed fixed)."""
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal(T)
+    y = np.asarray(mfmjax.simulate(_model(), u, dt=DT))
+    y = y + 0.05 * np.std(y) * rng.standard_normal(T)
+    return Signals(y, u, dt=DT, intersample="zoh", delays=[TAU])
+
+
+# -- NumPy twins --------------------------------------------------------------------------------
+
+
+def corr_twin(a, b, tau):
+    """(1/N) sum_t a(t) b(t - tau) over the t where both exist (plain loop)."""
+    N = a.size
+    return sum(a[t] * b[t - tau] for t in range(N) if 0 <= t - tau < N) / N
+
+
+def resid_twin(e, u, L):
+    N = e.size
+    eb = e - e.mean()
+    Re0 = corr_twin(eb, eb, 0)
+    auto = np.array([corr_twin(eb, eb, k) / Re0 for k in range(L + 1)])
+    out = {"auto": auto, "auto_bound": 2.5758293035489004 / math.sqrt(N),
+           "Q": N * np.sum(auto[1:] ** 2), "cross": [], "bound": [], "Qx": [], "dof": []}
+    r_ee = {k: auto[abs(k)] for k in range(-L, L + 1)}
+    for k in range(u.shape[1]):
+        ub = u[:, k] - u[:, k].mean()
+        Ru0 = corr_twin(ub, ub, 0)
+        c = np.array([corr_twin(eb, ub, tau) / math.sqrt(Re0 * Ru0) for tau in range(-L, L + 1)])
+
+        def r_uu(j):
+            return corr_twin(ub, ub, abs(j)) / Ru0
+
+        P1 = sum(r_ee[j] * r_uu(j) for j in range(-L, L + 1))
+        lags = range(-L, L + 1)
+        S = np.array([[sum(r_ee[j] * r_uu(j + ti - tj) for j in range(-L, L + 1)) / N
+                       for ti in lags] for tj in lags])
+        lam, V = np.linalg.eigh(S)
+        keep = lam > 1e-10 * lam.max()
+        out["cross"].append(c)
+        out["bound"].append(2.5758293035489004 * math.sqrt(P1 / N))
+        out["Qx"].append(np.sum((V[:, keep].T @ c) ** 2 / lam[keep]))
+        out["dof"].append(int(keep.sum()))
+    return out
+
+
+def test_correlations_match_numpy_definitions():
+    rng = np.random.default_rng(0)
+    N, L = 300, 12
+    e = np.convolve(rng.standard_normal(N + 3), [1.0, 0.6, 0.2], "valid")[:N] + 0.1
+    u = np.stack([np.convolve(rng.standard_normal(N + 4), [1, 0.9, 0.5, 0.2, 0.1], "valid")[:N],
+                  rng.standard_normal(N) + 2.0], axis=1)
+    got, ref = residual_tests(e, u, L), resid_twin(e, u, L)
+    # FFT vs direct sums of O(1) terms: rounding ~ N * eps = 7e-14; 1e-12 bounds it
+    np.testing.assert_allclose(got["auto"], ref["auto"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got["cross"], np.array(ref["cross"]), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got["cross_bound"], ref["bound"], rtol=1e-12)
+    assert got["auto_bound"] == pytest.approx(ref["auto_bound"], rel=1e-15)
+    assert got["whiteness_stat"] == pytest.approx(ref["Q"], rel=1e-10)
+    np.testing.assert_allclose(got["independence_stat"], ref["Qx"], rtol=1e-8)
+    np.testing.assert_allclose(got["independence_critical"],
+                               [chi2.ppf(0.99, d) for d in ref["dof"]], rtol=1e-12)
+    assert got["whiteness_critical"] == pytest.approx(chi2.ppf(0.99, L), rel=1e-12)
+    assert got["white"] == bool(ref["Q"] <= chi2.ppf(0.99, L))
+    assert Z99 == pytest.approx(2.58, abs=5e-3)
+
+
+def test_residuals_true_model_white_wrong_model_not(tmp_path):
+    sig = record()
+    res = mfmjax.residuals(_model(), sig, lags=20)
+    obs = mfmjax.observe(_model(), sig)
+    np.testing.assert_array_equal(res.e, np.asarray(sig.y) - np.asarray(obs.y_sim))
+    ref = resid_twin(res.e, np.asarray(sig.u), 20)
+    np.testing.assert_allclose(res.auto, ref["auto"], rtol=0, atol=1e-12)
+    assert res.white and res.independent == (True,) and res.ok
+    wrong = mfmjax.residuals(_model(a=[1.0, 1.6, 1.0]), sig, lags=20)
+    assert not wrong.white and not wrong.ok
+    assert "whiteness" in res.summary() and "PASS" in res.summary()
+    assert "FAIL" in wrong.summary()
+    d = wrong.to_dict()
+    assert d["whiteness"]["pass"] is False and d["N"] == T
+    path = tmp_path / "resid.png"
+    res.plot(path)
+    _is_png(path)
+
+
+def test_residuals_window_and_errors():
+    sig = record()
+    res = mfmjax.residuals(_model(), sig, (10.0, 60.0), observer_window=10.0, lags=10)
+    assert res.e.size == round(50.0 / DT) + 1 and res.t[0] == pytest.approx(10.0)
+    obs = mfmjax.observe(_model(), sig, (10.0, 60.0), observer_window=10.0)
+    k0 = round(10.0 / DT)
+    np.testing.assert_array_equal(res.e, np.asarray(sig.y)[k0 : k0 + res.e.size]
+                                  - np.asarray(obs.y_sim))
+    with pytest.raises(ValueError, match=r"residuals\(\): lags=400 is more than a quarter"):
+        mfmjax.residuals(_model(), sig, lags=400)
+    with pytest.raises(ValueError, match=r"residuals\(\): lags must be an integer >= 1"):
+        mfmjax.residuals(_model(), sig, lags=2.5)
+    with pytest.raises(TypeError, match=r"residuals\(\): signals must be a Signals"):
+        mfmjax.residuals(_model(), np.zeros(10))
+
+
+def test_compare_fit_is_the_numpy_nrmse(tmp_path):
+    sig = record()
+    cmp = mfmjax.compare(_model(), sig, (20.0, 70.0))
+    k0 = round(20.0 / DT)
+    y = np.asarray(sig.y)[k0 : k0 + cmp.y.size]
+    np.testing.assert_array_equal(cmp.y, y)
+    np.testing.assert_array_equal(cmp.y_sim, np.asarray(mfmjax.observe(_model(), sig,
+                                                                       (20.0, 70.0)).y_sim))
+    fit = 100 * (1 - np.linalg.norm(y - cmp.y_sim) / np.linalg.norm(y - y.mean()))
+    assert cmp.fit == pytest.approx(fit, rel=1e-12)
+    assert cmp.fit > 90  # 5 % output noise on the true model
+    cmp.plot(tmp_path / "cmp.png")
+    _is_png(tmp_path / "cmp.png")
+
+
+# -- responses ----------------------------------------------------------------------------------
+
+
+def step_twin(a, b, tau, t):
+    """Unit step from rest of b(s)/a(s) e^{-s tau} (SciPy, shifted by the delay)."""
+    sys = signal.lti(np.asarray(b)[::-1], np.asarray(a)[::-1])
+    out = np.zeros_like(t)
+    after = t >= tau - 1e-12
+    ts = np.maximum(t[after] - tau, 0.0)
+    if ts.size:
+        _, y = signal.step(sys, T=ts)
+        out[after] = y
+    return out
+
+
+def freq_twin(a, b, tau, w):
+    s = 1j * w
+    return np.polyval(np.asarray(b)[::-1], s) / np.polyval(np.asarray(a)[::-1], s) * np.exp(-s * tau)
+
+
+def _theta_split(theta):  # free parameters a_0, a_1, b_0, b_1 of the 2nd-order test model
+    return [theta[0], theta[1], 1.0], list(theta[2:4])
+
+
+def _fd_std(fn, theta, cov, rel=1e-6):
+    """Delta method with central finite differences (NumPy twin of the jacfwd one)."""
+    cols = []
+    for i in range(theta.size):
+        h = rel * max(abs(theta[i]), 1.0)
+        tp, tm = theta.copy(), theta.copy()
+        tp[i] += h
+        tm[i] -= h
+        cols.append((fn(tp) - fn(tm)) / (2 * h))
+    J = np.stack(cols, axis=-1)
+    return np.sqrt(np.einsum("...i,ij,...j->...", J, cov, J))
+
+
+COV = np.array([[4e-3, 1e-3, 5e-4, 0.0], [1e-3, 3e-3, 0.0, 2e-4], [5e-4, 0.0, 2e-3, 1e-4],
+                [0.0, 2e-4, 1e-4, 1e-3]])
+THETA = np.array([1.0, 0.8, 1.0, 0.3])
+
+
+def test_step_response_and_band_match_scipy(tmp_path):
+    tau = 0.25  # 10 steps of dt = 12.475 / 499 = 0.025
+    model = _model(tau=tau)
+    st = mfmjax.step_response(model, 12.475, covariance=COV, n_points=500)
+    dt = 12.475 / 499
+    assert st.t[1] == pytest.approx(dt, rel=1e-12)
+    ref = step_twin(A_TRUE, B_TRUE[0], tau, st.t)
+    # zoh step is exact: matrix exponentials on both sides, rounding ~1e-13 of the response
+    np.testing.assert_allclose(st.y[0], ref, rtol=0, atol=1e-10)
+
+    def fn(theta):
+        a, b = _theta_split(theta)
+        return step_twin(a, b, tau, st.t)
+
+    sd = _fd_std(fn, THETA, COV)
+    # central differences, h = 1e-6: truncation h^2 |y'''| ~ 1e-12, rounding eps / h ~ 1e-10
+    np.testing.assert_allclose(st.std[0], sd, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(st.upper - st.y, Z99 * st.std, rtol=1e-15)
+    assert np.all(st.y[0][st.t < tau - 1e-9] == 0)  # the delay: nothing before tau
+    st.plot(tmp_path / "step.png")
+    _is_png(tmp_path / "step.png")
+    plain = mfmjax.step_response(model, 12.475, n_points=500)
+    assert plain.std is None and plain.lower is None
+    np.testing.assert_array_equal(plain.y, st.y)
+
+
+def test_step_response_default_horizon_and_offset_excluded():
+    model = Model.from_coefficients(A_TRUE, B_TRUE, offset=5.0, delays=[TAU])
+    st = mfmjax.step_response(model)
+    # poles -0.4 +- 0.92j: 7 / 0.4 + tau
+    assert st.t[-1] == pytest.approx(7 / 0.4 + TAU, rel=1e-9)
+    assert st.y[0, -1] == pytest.approx(B_TRUE[0][0] / A_TRUE[0], abs=2e-3)  # e^-7 of the gain
+
+
+def test_frequency_response_and_band_match_numpy(tmp_path):
+    model = _model()
+    w = np.logspace(-2, 1.5, 60)
+    fr = mfmjax.frequency_response(model, w, covariance=COV)
+    H = freq_twin(A_TRUE, B_TRUE[0], TAU, w)
+    np.testing.assert_allclose(fr.H[0], H, rtol=1e-12)
+    np.testing.assert_allclose(fr.mag_db[0], 20 * np.log10(np.abs(H)), rtol=0, atol=1e-11)
+    np.testing.assert_allclose(np.exp(1j * np.radians(fr.phase_deg[0])), H / np.abs(H),
+                               rtol=0, atol=1e-12)
+    assert np.all(np.abs(np.diff(fr.phase_deg[0])) < 90)  # unwrapped
+
+    def fn(theta):
+        a, b = _theta_split(theta)
+        Hn = freq_twin(a, b, 0.0, w)
+        return np.stack([20 * np.log10(np.abs(Hn)), np.angle(Hn)])
+
+    sd = _fd_std(fn, THETA, COV)
+    np.testing.assert_allclose(fr.mag_db_std[0], sd[0], rtol=1e-6, atol=1e-10)
+    np.testing.assert_allclose(fr.phase_deg_std[0], np.degrees(sd[1]), rtol=1e-6, atol=1e-8)
+    fr.plot(tmp_path / "bode.png")
+    _is_png(tmp_path / "bode.png")
+    default = mfmjax.frequency_response(model)
+    # |poles| = sqrt(a_0) = 1, |zero| = 1 / 0.3: from 0.01 x the smallest to 100 x the largest
+    assert default.w[0] == pytest.approx(0.01, rel=1e-9)
+    assert default.w[-1] == pytest.approx(100 / 0.3, rel=1e-9)
+    with pytest.raises(ValueError, match=r"frequency_response\(\): w must hold frequencies > 0"):
+        mfmjax.frequency_response(model, [0.0, 1.0])
+
+
+def test_bands_from_a_fit_and_covariance_checks():
+    model = _model()
+    fit = types.SimpleNamespace(model=model, covariance=COV, names=("a_0", "a_1", "b_10", "b_11"))
+    a = mfmjax.step_response(fit, 5.0, n_points=50)
+    b = mfmjax.step_response(model, 5.0, covariance=COV, n_points=50)
+    np.testing.assert_array_equal(a.std, b.std)
+    with pytest.raises(ValueError, match=r"step_response\(\): covariance must be \(4, 4\)"):
+        mfmjax.step_response(model, 5.0, covariance=np.eye(3))
+    bad = types.SimpleNamespace(model=model, covariance=COV, names=("x", "a_1", "b_10", "b_11"))
+    with pytest.raises(ValueError, match=r"frequency_response\(\): the fit's parameters"):
+        mfmjax.frequency_response(bad)
+    with pytest.raises(TypeError, match=r"step_response\(\): model must be a Model or a fit"):
+        mfmjax.step_response("model.json")
+
+
+# -- export -------------------------------------------------------------------------------------
+
+
+def test_to_control_keeps_delays_as_pade_and_to_scipy_refuses_them():
+    control = pytest.importorskip("control")
+    model = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0, 0.5], [0.8]], delays=[0.0, 0.5],
+                                    offset=0.3)
+    sys = mfmjax.to_control(model)
+    assert sys.ninputs == 3 and sys.nstates == 2 + 5 and sys.input_labels == ["u1", "u2", "offset"]
+    w = np.linspace(0.05, 4.0, 40)  # omega tau <= 2
+    H = sys(1j * w)[0]
+    # Pade(5): exact magnitude, phase error < 5e-5 deg for omega tau <= 2 (docstring table):
+    # |dH| / |H| = |dphase| in rad < 1e-6
+    np.testing.assert_allclose(H[1], freq_twin([2.0, 3.0, 1.0], [0.8], 0.5, w), rtol=1e-6)
+    np.testing.assert_allclose(H[0], freq_twin([2.0, 3.0, 1.0], [1.0, 0.5], 0.0, w), rtol=1e-12)
+    np.testing.assert_allclose(H[2], freq_twin([2.0, 3.0, 1.0], [0.3], 0.0, w), rtol=1e-12)
+    assert mfmjax.to_control(model, pade_order=0).nstates == 2
+    assert control.ss2tf(mfmjax.to_control(model, pade_order=0)).den[0][0][0] == 1.0
+    with pytest.raises(ValueError, match=r"to_scipy\(\): scipy.signal systems cannot carry"):
+        mfmjax.to_scipy(model)
+    sp = mfmjax.to_scipy(model, ignore_delays=True)
+    assert sp.A.shape == (2, 2)
+    with pytest.raises(ValueError, match=r"to_control\(\): pade_order must be"):
+        mfmjax.to_control(model, pade_order=-1)
+
+
+def test_save_model_keeps_an_optional_covariance(tmp_path):
+    import json
+
+    from mfmjax._analysis import saved_covariance
+
+    model = _model()
+    mfmjax.save_model(model, tmp_path / "m.json", covariance=COV)
+    back = mfmjax.load_model(tmp_path / "m.json")
+    cov, note = saved_covariance(tmp_path / "m.json", back)
+    np.testing.assert_array_equal(cov, COV)
+    assert json.loads((tmp_path / "m.json").read_text())["covariance"]["names"] == [
+        "a_0", "a_1", "b_10", "b_11"]
+    mfmjax.save_model(model, tmp_path / "plain.json")
+    assert saved_covariance(tmp_path / "plain.json", back)[0] is None
+    with pytest.raises(ValueError, match=r"save_model\(\): covariance must be a finite \(4, 4\)"):
+        mfmjax.save_model(model, tmp_path / "x.json", covariance=np.eye(2))
+
+
+def _is_png(path):
+    data = open(path, "rb").read()
+    assert data[:8] == PNG and len(data) > 10_000, (path, len(data))
