@@ -29,8 +29,9 @@ Protocol (the same for every peer, and for mfmjax in benchmarks/real_data.py):
   feed-through; sippy counts its delay from 1, so its `theta` is nk - 1, with the input advanced one
   sample for nk = 0); nb and nk common to all inputs.
   N4SID (sippy, MIMO for the glass furnace): order 1..8, horizon f in {10, 20}, D free or zero.
-  SRIVC (tests/reference_srivc.py, time in samples): n in 1..3, numerator degree m common to all
-  inputs, 0..n (m = n is feed-through); delay 0..3 samples on the heating system; started from a
+  SRIVC (tests/reference_srivc.py, time in samples): n in 1..3, numerator degrees m_k in 0..n
+  (m_k = n is feed-through), chosen per input for n <= 2 and common to all inputs for n = 3; delay
+  0..3 samples (common) on the heating system, none elsewhere; started from a
   state-variable-filter least squares with the filter pole at lambda in {0.3, 0.1, 0.03, 0.01} per
   sample, keeping the start whose SRIVC has the lowest fit-part error.
   SRIVC+OE: each SRIVC estimate refined by output error (scipy.optimize.least_squares on the
@@ -46,6 +47,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import itertools
 import json
 import os
 import sys
@@ -150,8 +152,11 @@ def record(name):
     return Y, np.asarray(sigs[0].u, dtype=float), float(sigs[0].dt), tuple(sigs[0].intersample)
 
 
-def centred(Y, U, a, b):
-    """Y, U minus the means of the rows a:b (the estimation window)."""
+def centred(Y, U, a, b, remove_means=True):
+    """Y, U minus the means of the rows a:b (the estimation window); unchanged if not
+    remove_means (a variant for comparison only, not the protocol)."""
+    if not remove_means:
+        return Y, U
     return Y - Y[a:b].mean(axis=0), U - U[a:b].mean(axis=0)
 
 
@@ -200,10 +205,10 @@ def arx_score(model, Y, U, a, b, nk):
     return np.array(fits)
 
 
-def peer_arx(Y, U, e, v):
+def peer_arx(Y, U, e, v, remove_means=True):
     """ARX: structure per output by hold-out fit, then re-estimated on the estimation data."""
     h = (2 * e) // 3
-    Yc, Uc = centred(Y, U, 0, h)
+    Yc, Uc = centred(Y, U, 0, h, remove_means)
     best = [(-np.inf, None)] * Y.shape[1]
     for na in ARX_NA:
         for nb in ARX_NB:
@@ -211,7 +216,7 @@ def peer_arx(Y, U, e, v):
                 fits = arx_score(arx_fit(Yc, Uc, 0, h, na, nb, nk), Yc, Uc, h, e, nk)
                 best = [max(bst, (f, (na, nb, nk)), key=lambda t: t[0])
                         for bst, f in zip(best, fits)]
-    Yc, Uc = centred(Y, U, 0, e)
+    Yc, Uc = centred(Y, U, 0, e, remove_means)
     fits = []
     for i, (hold, (na, nb, nk)) in enumerate(best):
         model = arx_fit(Yc[:, [i]], Uc, 0, e, na, nb, nk)
@@ -236,10 +241,10 @@ def n4sid_score(model, Y, U, a, b):
         return validation_fit(ss_simulator(A, B, C, D, U[a:b]), A.shape[0], Y[a:b])[0]
 
 
-def peer_n4sid(Y, U, e, v):
+def peer_n4sid(Y, U, e, v, remove_means=True):
     """N4SID (MIMO): order, horizon and D by the mean hold-out fit over the outputs."""
     h = (2 * e) // 3
-    Yc, Uc = centred(Y, U, 0, h)
+    Yc, Uc = centred(Y, U, 0, h, remove_means)
     best = (-np.inf, None)
     for f in N4SID_HORIZONS:
         for D in (False, True):
@@ -252,7 +257,7 @@ def peer_n4sid(Y, U, e, v):
                 if np.isfinite(score) and score > best[0]:
                     best = (score, (order, f, D))
     order, f, D = best[1]
-    Yc, Uc = centred(Y, U, 0, e)
+    Yc, Uc = centred(Y, U, 0, e, remove_means)
     fits = n4sid_score(n4sid_fit(Yc, Uc, 0, e, order, f, D), Yc, Uc, e, v)
     return dict(structure=dict(order=order, f=f, D=D, holdout_fit=best[0]),
                 fit=[float(x) for x in fits])
@@ -358,10 +363,17 @@ def ct_score(theta, n, m, modes, y, u):
 
 
 def ct_structures(K, delays):
-    return [(n, (mm,) * K, d) for n in SRIVC_ORDERS for mm in range(n + 1) for d in delays]
+    """(n, m, delay): m_k in 0..n per input for n <= 2, one m common to all inputs for n = 3
+    (99 structures per output for 3 inputs would not fit the time budget; 39 do)."""
+    out = []
+    for n in SRIVC_ORDERS:
+        ms = (itertools.product(range(n + 1), repeat=K) if n <= 2
+              else [(mm,) * K for mm in range(n + 1)])
+        out += [(n, tuple(m), d) for m in ms for d in delays]
+    return out
 
 
-def peer_srivc(Y, U, e, v, modes, delays):
+def peer_srivc(Y, U, e, v, modes, delays, remove_means=True):
     """SRIVC and SRIVC+OE, MISO per output, each choosing its structure by hold-out fit."""
     h = (2 * e) // 3
     K = U.shape[1]
@@ -369,7 +381,7 @@ def peer_srivc(Y, U, e, v, modes, delays):
            "SRIVC+OE": dict(structure=[], fit=[], seconds=0.0)}
     for i in range(Y.shape[1]):
         t0 = time.perf_counter()
-        Yc, Uc = centred(Y[:, [i]], U, 0, h)
+        Yc, Uc = centred(Y[:, [i]], U, 0, h, remove_means)
         cands = []
         for n, m, d in ct_structures(K, delays):
             Ud = delayed(Uc, [d] * K)
@@ -383,7 +395,7 @@ def peer_srivc(Y, U, e, v, modes, delays):
             th2 = oe_fit(th, Yc[:h, 0], Ud[:h], n, m, modes)
             oe.append(((n, m, d), th2, ct_score(th2, n, m, modes, Yc[h:e, 0], Ud[h:e])))
         t_oe = time.perf_counter() - t0 - t_srivc
-        Yc, Uc = centred(Y[:, [i]], U, 0, e)
+        Yc, Uc = centred(Y[:, [i]], U, 0, e, remove_means)
         for peer, pool, extra in (("SRIVC", cands, 0.0), ("SRIVC+OE", oe, t_srivc + t_oe)):
             t1 = time.perf_counter()
             (n, m, d), th_fit, hold = max(pool, key=lambda c: c[2])
@@ -404,23 +416,24 @@ def peer_srivc(Y, U, e, v, modes, delays):
 
 
 # --------------------------------------------------------------------------- API
-def peers(name):
-    """All peers on the DaISy record `name`: {peer: {structure, fit (per output), fit_mean,
-    seconds}}."""
+def peers(name, remove_means=True):
+    """All peers on the DaISy record `name` (a key of `TASKS`): dict with the record's facts and
+    `peers`: {peer: {structure, fit (per output, %), fit_mean, seconds}}. `remove_means=False`
+    skips the mean removal (a comparison variant, not the protocol)."""
     Y, U, dt, modes = record(name)
     T = len(Y)
     e = (2 * T) // 3
     out = {}
     for peer, fn in (("ARX", peer_arx), ("N4SID", peer_n4sid)):
         t0 = time.perf_counter()
-        r = fn(Y, U, e, T)
+        r = fn(Y, U, e, T, remove_means=remove_means)
         r["seconds"] = time.perf_counter() - t0
         out[peer] = r
-    out.update(peer_srivc(Y, U, e, T, modes, TASKS[name]["delays"]))
+    out.update(peer_srivc(Y, U, e, T, modes, TASKS[name]["delays"], remove_means))
     for r in out.values():
         r["fit_mean"] = float(np.mean(r["fit"]))
     return dict(record=name, outputs=TASKS[name]["outputs"], samples=T, estimation_samples=e,
-                dt=dt, peers=out)
+                dt=dt, means_removed=remove_means, peers=out)
 
 
 def main():
@@ -433,6 +446,15 @@ def main():
     for r in rows:
         print(f"{r['record']:<16}" + "".join(
             f"{r['peers'][p]['fit_mean']:>16.1f}{r['peers'][p]['seconds']:>7.1f}" for p in PEERS))
+    print("\nchosen structures (hold-out fit %):")
+    for r in rows:
+        for p in PEERS:
+            st = r["peers"][p]["structure"]
+            st = st if isinstance(st, list) else [st]
+            print(f"  {r['record']:<15}{p:<9}" + "; ".join(
+                ",".join(f"{k}={v}" for k, v in d.items() if k not in ("holdout_fit",
+                                                                      "srivc_refit_stable"))
+                + f" ({d['holdout_fit']:.1f})" for d in st))
     gf = next(r for r in rows if r["record"] == "glass_furnace")
     print("\nglass furnace per output (y1..y6):")
     for p in PEERS:
@@ -440,7 +462,20 @@ def main():
     os.makedirs(os.path.join(os.path.dirname(__file__), "results"), exist_ok=True)
     with open(os.path.join(os.path.dirname(__file__), "results", "real_data_peers.json"),
               "w") as fh:
-        json.dump(rows, fh, indent=1, default=lambda o: o.item() if hasattr(o, "item") else str(o))
+        json.dump(_plain(rows), fh, indent=1)
+
+
+def _plain(x):
+    """JSON-safe copy: NumPy scalars as Python numbers, non-finite floats as None."""
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x
 
 
 if __name__ == "__main__":
