@@ -168,11 +168,19 @@ def quiet():
 
 
 # --------------------------------------------------------------------------- ARX (sippy)
+def _sippy():
+    try:
+        from sippy_unipi import system_identification
+    except ImportError as err:
+        raise ImportError("real_data_peers needs sippy-unipi (a benchmark-only dependency): "
+                          "pip install sippy-unipi") from err
+    return system_identification
+
+
 def arx_fit(Y, U, a, b, na, nb, nk):
     """sippy ARX on rows a:b, delay nk in samples (0 = feed-through). Returns per output
     (den, [b_k]) with b_k the coefficients of lags nk..nk+nb-1."""
-    from sippy_unipi import system_identification
-
+    system_identification = _sippy()
     if nk == 0:  # sippy's first lag is 1: advance the input one sample
         y, u, theta = Y[a:b - 1], U[a + 1:b], 0
     else:
@@ -227,8 +235,7 @@ def peer_arx(Y, U, e, v, remove_means=True):
 
 # --------------------------------------------------------------------------- N4SID (sippy)
 def n4sid_fit(Y, U, a, b, order, f, D):
-    from sippy_unipi import system_identification
-
+    system_identification = _sippy()
     with quiet():
         m = system_identification(Y[a:b], U[a:b], "N4SID", SS_fixed_order=order, SS_f=f,
                                   SS_D_required=D)
