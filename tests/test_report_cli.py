@@ -1,0 +1,106 @@
+"""`mfmjax report model.json data.csv -o dir/`: end to end on a small CSV written here."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import mfmjax
+from mfmjax._cli import main
+
+DT, T = 0.05, 1200
+PNG = b"\x89PNG\r\n\x1a\n"
+TRUE = dict(a=[1.0, 0.8, 1.0], b=[[1.0]], delays=[0.15], intersample=["zoh"],
+            input_names=["valve"], output_name="temp")
+COV = np.diag([2e-3, 1e-3, 1e-3])
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """A 2nd-order plant with a delay, white zoh input, 3 % white output noise (seed fixed)."""
+    folder = tmp_path_factory.mktemp("report")
+    model = mfmjax.Model.from_coefficients(TRUE["a"], TRUE["b"], delays=TRUE["delays"],
+                                           intersample=TRUE["intersample"],
+                                           input_names=TRUE["input_names"],
+                                           output_name=TRUE["output_name"])
+    rng = np.random.default_rng(3)
+    u = rng.standard_normal(T)
+    y = np.asarray(mfmjax.simulate(model, u, dt=DT))
+    y = y + 0.03 * np.std(y) * rng.standard_normal(T)
+    with open(folder / "data.csv", "w") as fh:
+        fh.write("t,valve,temp\n")
+        for k in range(T):
+            fh.write(f"{DT * k!r},{float(u[k])!r},{float(y[k])!r}\n")
+    mfmjax.save_model(model, folder / "model.json", covariance=COV)
+    mfmjax.save_model(model, folder / "nocov.json")
+    return folder, model
+
+
+ARGS = ["--output", "temp", "--inputs", "valve", "--time", "t", "--intersample", "zoh"]
+
+
+def _png(path):
+    data = path.read_bytes()
+    assert data[:8] == PNG and len(data) > 10_000, (path, len(data))
+
+
+def test_report_writes_figures_and_json(files, capsys):
+    folder, model = files
+    out = folder / "out"
+    rc = main(["report", str(folder / "model.json"), str(folder / "data.csv"), *ARGS,
+               "--window", "10,59.95", "--lags", "20", "-o", str(out)])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    text = cap.out
+    for name in ("compare", "residuals", "step", "bode"):
+        _png(out / f"{name}.png")
+    rep = json.loads((out / "report.json").read_text())
+    sig = mfmjax.Signals.from_csv(folder / "data.csv", output="temp", inputs=["valve"],
+                                  time="t", intersample="zoh")
+    cmp = mfmjax.compare(model, sig, (10.0, 59.95))
+    res = mfmjax.residuals(model, sig, (10.0, 59.95), lags=20)
+    assert rep["fit"] == pytest.approx(cmp.fit, rel=1e-12)
+    assert rep["window"] == [pytest.approx(10.0), pytest.approx(59.95)]
+    assert rep["residuals"]["lags"] == 20 and rep["residuals"]["N"] == res.e.size
+    assert rep["residuals"]["whiteness"]["pass"] is True  # the true model on white noise
+    assert rep["residuals"]["independence"]["valve"]["pass"] is True
+    assert rep["residuals"]["whiteness"]["Q"] == pytest.approx(res.whiteness_stat, rel=1e-12)
+    assert rep["bands"] is True and "99 %" in rep["bands_note"]
+    assert "whiteness" in text and "fit" in text
+
+
+def test_report_without_covariance_says_no_bands(files, capsys):
+    folder, _ = files
+    out = folder / "plain"
+    assert main(["report", str(folder / "nocov.json"), str(folder / "data.csv"), *ARGS,
+                 "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "no bands: the model file has no covariance" in text
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["bands"] is False
+    _png(out / "step.png")
+
+
+@pytest.mark.parametrize("extra,match", [
+    (["--lags", "0"], "--lags"),
+    (["--lags", "400"], "lags=400 is more than a quarter"),
+    (["--window", "50,80"], "window (50, 80) must lie inside the record"),
+    (["--observer-window", "-1"], "--observer-window"),
+])
+def test_report_user_errors_one_line_exit_2(files, capsys, extra, match):
+    folder, _ = files
+    rc = main(["report", str(folder / "model.json"), str(folder / "data.csv"), *ARGS,
+               "-o", str(folder / "bad"), *extra])
+    err = capsys.readouterr().err
+    assert rc == 2 and match in err and err.count("\n") == 1, err
+
+
+def test_report_missing_files(files, capsys):
+    folder, _ = files
+    assert main(["report", str(folder / "nope.json"), str(folder / "data.csv"), *ARGS,
+                 "-o", str(folder / "bad")]) == 2
+    assert "cannot read" in capsys.readouterr().err
+    assert main(["report", str(folder / "model.json"), *ARGS, "-o", str(folder / "bad")]) == 2
+    assert capsys.readouterr().err.startswith("error: ")
