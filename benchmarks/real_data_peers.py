@@ -15,7 +15,7 @@ Protocol (the same for every peer, and for mfmjax in benchmarks/real_data.py):
   estimation data: its means are the ones removed.)
 - Structure selection on estimation data only: the estimation data are split into a fit part (their
   first 2/3) and a hold-out part (their last 1/3); every candidate structure is estimated on the fit
-  part and scored by its simulation fit % on the hold-out part (state as below); the best one is
+  part and scored by its simulation fit % on the hold-out part (scored as below); the best one is
   re-estimated on all estimation data. One rule for all peers: best hold-out simulation fit %
   (per output for the MISO peers ARX and SRIVC, the mean over the outputs for the MIMO N4SID).
 - Score: fit % = 100 (1 - ||y - y_sim|| / ||y - mean y||) on the whole scored window, simulation
@@ -34,9 +34,12 @@ Protocol (the same for every peer, and for mfmjax in benchmarks/real_data.py):
   0..3 samples (common) on the heating system, none elsewhere; started from a
   state-variable-filter least squares with the filter pole at lambda in {0.3, 0.1, 0.03, 0.01} per
   sample, keeping the start whose SRIVC has the lowest fit-part error.
-  SRIVC+OE: each SRIVC estimate refined by output error (scipy.optimize.least_squares on the
-  simulation error, initial state projected out by least squares over the whole estimation window),
-  the structure chosen again by the hold-out rule.
+  If no start gives a stable SRIVC on all estimation data, the fit-part estimate is kept
+  (`srivc_refit_stable: false` in the results).
+  SRIVC+OE: each SRIVC estimate refined by output error: scipy.optimize.least_squares over the
+  denominator, with the numerators and the initial state (linear in the simulated output) solved
+  by least squares over the whole window at each step (variable projection); the structure chosen
+  again by the hold-out rule.
 - Times: wall seconds per record and peer, structure selection + final fit. SRIVC+OE includes the
   SRIVC runs it starts from. BLAS threads are set to 1 (OPENBLAS/OMP/MKL_NUM_THREADS) when this
   module is imported before NumPy; threaded BLAS on these tiny matrices made SciPy's expm ~70x
