@@ -240,7 +240,7 @@ def _grid_numbers(fn, name, value, **kw):
 
 
 def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
-                 chunk_size, simulate, progress) -> None:
+                 chunk_size, simulate, progress, identify=None) -> None:
     """search(): every grid and option checked for kind and range before anything is built."""
     fn = "search"
     require_x64(fn)
@@ -269,6 +269,13 @@ def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_wi
             numbers_(fn, f"delays[{k}]", dk)  # the sign is checked by the grid builder
     choice(fn, "score", score, ("E", "J", "fit", "aic", "bic"))
     window(fn, "validate", validate)
+    if identify is not None:
+        if isinstance(identify, (str, bytes)) or not isinstance(identify, (list, tuple)) or \
+                not identify:
+            raise TypeError(f"{fn}(): identify must be a window (t0, t1) or a list of windows, "
+                            f"got {_show(identify)}")
+        for w in ([identify] if np.isscalar(identify[0]) else identify):
+            window(fn, "identify", w)
     if observer_window is not None:
         number(fn, "observer_window", observer_window, lo=0, lo_open=True)
     _eta(fn, eta)

@@ -178,19 +178,22 @@ def modulate(x, weights):
     return jnp.fft.irfft(spectrum, n, axis=-1)[..., :T]
 
 
-def gregory_weights(n_samples: int, first, dt: float):
-    r"""Gregory (end-corrected trapezoid, O(dt^4)) weights on samples `first..n_samples-1`.
+def gregory_weights(n_samples: int, first, dt: float, end=None):
+    r"""Gregory (end-corrected trapezoid, O(dt^4)) weights on samples `first..end-1` (default
+    end: `n_samples`), an array of length `n_samples`.
 
-    Zero before `first` (dynamic). End weights 3/8, 7/6, 23/24; needs at least 6 valid samples.
+    Zero outside (`first` and `end` may be traced). End weights 3/8, 7/6, 23/24; needs at least
+    6 valid samples.
     """
     k = jnp.arange(n_samples)
     ends = jnp.asarray([3 / 8, 7 / 6, 23 / 24])
+    end = n_samples if end is None else end
 
     def end_weight(offset):
         return jnp.where(offset < 3, ends[jnp.clip(offset, 0, 2)], 1.0)
 
-    w = end_weight(k - first) * end_weight(n_samples - 1 - k)
-    return dt * jnp.where(k >= first, w, 0.0)
+    w = end_weight(k - first) * end_weight(end - 1 - k)
+    return dt * jnp.where((k >= first) & (k < end), w, 0.0)
 
 
 def shift_samples(x, lag):

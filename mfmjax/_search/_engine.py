@@ -19,7 +19,7 @@ from ._result import SearchResult, collect
 from ._validation import validate_candidate
 
 
-def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, structs, nm):
+def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, structs, nm, where):
     """All candidates of a chunk of (h, delays) groups: for every group, the classes' (N, M)
     x structure products, flattened in class order: outputs (G, C_group, ...)."""
     K = sig.n_inputs
@@ -80,7 +80,7 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, structs,
 
     def grams(hd):  # one (h, delays) setting: the Gram of every (N, M)
         h, delays = hd
-        H, W, scale = moment_gram(sig, static, h, delays)
+        H, W, scale = moment_gram(sig, static, h, delays, where["segments"])
         return jax.vmap(lambda coef: one_nm(H, W, scale, h, coef))(nm["coef"])
 
     def solve_group(h, Gx, alive):
@@ -118,7 +118,8 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, structs,
         "k": jnp.broadcast_to(per_col["k"], shape).reshape(-1),
         "delays": jnp.broadcast_to(groups["delays"][:, None, :], shape + (K,)).reshape(-1, K),
     }
-    val = jax.lax.map(lambda c: validate_candidate(sig, static, c), flat, batch_size=static.batch)
+    val = jax.lax.map(lambda c: validate_candidate(sig, static, c, where["v_start"]), flat,
+                      batch_size=static.batch)
     val = {key: v.reshape(shape) for key, v in val.items()}
     status = (out["status"] | val.pop("status")).astype(jnp.int32)
     return dict(out, status=status, **val)
@@ -151,7 +152,8 @@ def run_plan(plan: Plan, signals: Signals, progress=None) -> SearchResult:
         g = {k: place(v, plan.sharding) for k, v in g.items()}
         t0 = time.perf_counter()
         res = jax.block_until_ready(
-            chunk_jit(signals.unlabelled(), static, plan.eta, g, plan.struct_arr, plan.nm))
+            chunk_jit(signals.unlabelled(), static, plan.eta, g, plan.struct_arr, plan.nm,
+                      plan.where))
         if jax.process_count() > 1:  # multi-host: every process gets every candidate
             from jax.experimental import multihost_utils
 
@@ -171,4 +173,5 @@ def run_plan(plan: Plan, signals: Signals, progress=None) -> SearchResult:
     n_set = len(hd)
     cols["group"] = np.repeat(np.arange(n_set), Cg) * len(plan.nm["N"]) + np.tile(col_nm, n_set)
     cols["struct"] = np.tile(col_struct, n_set)
-    return collect(cols, plan.combos, plan.structs, signals, static, plan.score, t_compile, t_run)
+    return collect(cols, plan.combos, plan.structs, signals, static, plan.score, t_compile, t_run,
+                   int(plan.where["v_start"]))

@@ -66,7 +66,6 @@ class ChunkStatic(eqx.Module):
     col_source: tuple[int, ...] = eqx.field(static=True)  # source of each of the first p columns
     classes: tuple = eqx.field(static=True)  # `OrderClass` of every model order
     devices: int = eqx.field(static=True)  # devices the (h, delays) axis is sharded over
-    v_start: int = eqx.field(static=True)
     v_length: int = eqx.field(static=True)
     ob_length: int = eqx.field(static=True)
     simulate: bool = eqx.field(static=True)
@@ -107,10 +106,33 @@ class Plan(NamedTuple):
     score: str
     n_samples: int
     n_inputs: int
+    where: dict  # values, not shapes: "segments" (S, 2) identification windows [start, end) and
+    # "v_start" of the validation window, in samples (a new fold reuses the compiled chunk)
+
+
+def identification_segments(signals: Signals, identify, fn: str = "search") -> tuple:
+    """(start, end) sample ranges (end exclusive) of the identification window(s): one (t0, t1)
+    window or a list of them (e.g. the experiments of `Signals.concatenate`); default the record."""
+    if identify is None:
+        return ((0, signals.n_samples),)
+    windows = [identify] if np.isscalar(identify[0]) else list(identify)
+    T, dt, t0 = signals.n_samples, signals.dt, signals.t0
+    out = []
+    for w in windows:
+        if len(w) != 2:
+            raise ValueError(f"{fn}(): identify must be a window (t0, t1) or a list of them "
+                             f"(got {w!r})")
+        a, b = round((float(w[0]) - t0) / dt), round((float(w[1]) - t0) / dt)
+        if not (0 <= a < b <= T - 1):
+            raise ValueError(f"{fn}(): identify window ({float(w[0]):g}, {float(w[1]):g}) must "
+                             f"lie inside the record [{t0:g}, {t0 + (T - 1) * dt:g}] with "
+                             "start < end")
+        out.append((a, b + 1))
+    return tuple(out)
 
 
 def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
-          chunk_size, simulate, span_bound: float = 0.0) -> Plan:
+          chunk_size, simulate, span_bound: float = 0.0, identify=None) -> Plan:
     """Check the grid against the record's shape and build the static parts of `search`.
 
     `span_bound` (time units) pads the kernels to at least this h + delay, so that plans with
@@ -170,10 +192,12 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     dt = signals.dt
     first = int(support_samples(h_max + delay_max, dt))
     p_needed = n_max + 1 + sum(mk + 1 for mk in m_max) + int(signals.offset)
-    if signals.n_samples - first < max(MIN_VALID, 2 * p_needed):
+    segments = identification_segments(signals, identify)
+    if min(b - a for a, b in segments) - first < max(MIN_VALID, 2 * p_needed):
         raise ValueError(
             f"search(): h={h_max:g} (+ delays {delay_max:g}) leaves too few valid samples in "
-            f"the record ({signals.duration:g} time units); use smaller h"
+            f"the {'record' if identify is None else 'identify window'} "
+            f"({(min(b - a for a, b in segments) - 1) * dt:g} time units); use smaller h"
         )
     v0, v_len, ob = validation_window(signals, validate, observer_window, n_max, "search")
     p = p_needed
@@ -229,7 +253,7 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     static = ChunkStatic(
         n_max, m_max, ft_inputs, kernel_length(max(h_max + delay_max, span_bound), dt), degree,
         tuple(sources), tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]), tuple(classes),
-        len(jax.devices()), v0, v_len, ob, bool(simulate), VALIDATION_BATCH,
+        len(jax.devices()), v_len, ob, bool(simulate), VALIDATION_BATCH,
     )
     mesh = device_mesh()
     n_dev = mesh.devices.size
@@ -237,8 +261,10 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("c"))
     col_nm = np.concatenate([np.repeat(c.nm, len(c.structs)) for c in classes])
     col_struct = np.concatenate([np.tile(c.structs, len(c.nm)) for c in classes])
+    where = {"segments": jnp.asarray(segments, dtype=jnp.int32),
+             "v_start": jnp.asarray(v0, dtype=jnp.int32)}
     return Plan(static, eta, structs, tuple(struct_arr), nm, hd, combos, (col_nm, col_struct),
-                 chunk, sharding, score, signals.n_samples, K)
+                chunk, sharding, score, signals.n_samples, K, where)
 
 
 @functools.lru_cache(maxsize=128)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from .._quadrature import (
@@ -29,7 +30,7 @@ def _fft_modulate(x, W):
     return conv.reshape(-1, T).T
 
 
-def moment_gram(sig: Signals, static: ChunkStatic, h, delays):
+def moment_gram(sig: Signals, static: ChunkStatic, h, delays, segments):
     r"""Sliding Legendre moments of every source and their Gram $H$ (one per (h, delays)).
 
     Every column of $c(t)$ for every (N, M) is $\sum_q c_q\,\text{moment}_q$ of one source,
@@ -50,7 +51,10 @@ def moment_gram(sig: Signals, static: ChunkStatic, h, delays):
     x, W = jnp.stack(signals), jnp.stack(weights)
     Mom = _fft_modulate(x, W)  # (T, sources * Q)
     span = h + (jnp.max(delays) if delays.shape[0] else 0.0)
-    q = gregory_weights(T, support_samples(span, dt), dt)
+    # the Gram integral sums the valid samples of each identification window [start, end)
+    first = support_samples(span, dt)
+    q = jnp.sum(jax.vmap(lambda ab: gregory_weights(T, ab[0] + first, dt, end=ab[1]))(segments),
+                axis=0)
     Mq = jnp.sqrt(q)[:, None] * Mom  # q >= 0 (Gregory weights)
     H = Mq.T @ Mq
     scales = jnp.max(jnp.abs(x), axis=1)

@@ -21,6 +21,7 @@ def search(
     delays: Sequence[Sequence[float]] | None = None,
     score: str = "E",
     validate: tuple[float, float] | None = None,
+    identify=None,
     observer_window: float | None = None,
     eta=None,
     chunk_size: int = CHUNK_SETTINGS,
@@ -43,6 +44,9 @@ def search(
       candidate with fewer parameters.
     - `validate`: (t0, t1) window for E and fit (default: the whole record); the state at its
       start comes from the initial-state observer over `observer_window` (default: the window).
+    - `identify`: (t0, t1) window, or a list of windows, whose samples the Gram integral
+      (eq. 9-10) sums (default: the record). With `validate` outside it, E, fit, AIC and BIC
+      are scores on data the candidates were not fitted on (hold-out model selection).
     - `simulate`: False skips the observer + simulation (E, fit, AIC, BIC are NaN; only the
       `"J"` score is available): the pure equation-error search.
     - `chunk_size`: (h, delays) settings per compiled chunk (at most the grid's; rounded up to
@@ -56,8 +60,8 @@ def search(
 
     check_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score, validate=validate,
                  observer_window=observer_window, eta=eta, chunk_size=chunk_size,
-                 simulate=simulate, progress=progress)
+                 simulate=simulate, progress=progress, identify=identify)
     plan = plan_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score,
                  validate=validate, observer_window=observer_window, eta=eta,
-                 chunk_size=chunk_size, simulate=simulate)
+                 chunk_size=chunk_size, simulate=simulate, identify=identify)
     return run_plan(plan, signals, progress)

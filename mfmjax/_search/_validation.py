@@ -30,14 +30,14 @@ def padded_forced(sig: Signals, c):
     return (ss, drive, direct), live
 
 
-def validate_candidate(sig: Signals, static: ChunkStatic, c):
+def validate_candidate(sig: Signals, static: ChunkStatic, c, v_start=0):
     """E (eq. 17), fit and information criteria of one candidate on the validation window, the
     simulation started from the initial-state observer (eq. 14) of a zero-padded realisation."""
     forced, live = padded_forced(sig, c)
-    obs = observe_forced(forced, sig.y, sig.dt, static.v_start, static.v_length,
+    obs = observe_forced(forced, sig.y, sig.dt, v_start, static.v_length,
                           static.ob_length, live)
     status = obs.status | jnp.where(hurwitz(c["a"]), 0, Status.UNSTABLE)
-    yv = jax.lax.dynamic_slice_in_dim(sig.y, static.v_start, static.v_length)
+    yv = jax.lax.dynamic_slice_in_dim(sig.y, v_start, static.v_length)
     Nv = static.v_length
     loglik = Nv * jnp.log(jnp.maximum(obs.E / (Nv * sig.dt), 1e-300))
     return dict(E=obs.E, fit=fit_percent(yv, obs.y_sim), aic=loglik + 2 * c["k"],
