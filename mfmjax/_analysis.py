@@ -260,7 +260,13 @@ def model_and_covariance(obj, covariance, fn: str):
         model = obj.model
         names = tuple(getattr(obj, "names", ()) or ()) or None
         if covariance is None:
-            covariance = obj.covariance
+            covariance = usable_covariance(model, obj.covariance)
+            if covariance is None:
+                import warnings
+
+                warnings.warn(f"{fn}(): the fit carries no usable covariance (empty or not "
+                              "finite): no bands", stacklevel=3)
+                return model, None
     else:
         raise TypeError(f"{fn}(): model must be a Model or a fit with a covariance (Estimate, "
                         f"OutputErrorFit, SrivcFit), got {type(obj).__name__}")
@@ -278,6 +284,19 @@ def model_and_covariance(obj, covariance, fn: str):
     if np.any(np.diag(cov) < 0) or not np.allclose(cov, cov.T, rtol=1e-8, atol=0.0):
         raise ValueError(f"{fn}(): covariance must be symmetric with a non-negative diagonal")
     return model, np.asarray(cov, dtype=np.float64)
+
+
+def usable_covariance(model: Model, covariance):
+    """`covariance` as a float64 matrix when it is a finite (p, p) matrix over the model's p
+    free parameters, else None (e.g. the NaN covariance of a plain-MFM estimate)."""
+    if covariance is None:
+        return None
+    p = len(free_parameters(model)[0])
+    try:
+        cov = np.asarray(covariance, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    return cov if cov.shape == (p, p) and np.all(np.isfinite(cov)) else None
 
 
 def _poles(model):

@@ -146,10 +146,13 @@ def _cmd_identify(args):
         warnings.simplefilter("ignore")
         model = mfmjax.identify(sig, structure, mf)
     report = _refine_report(sig, model, bool(args.delays)) if args.refine else None
+    cov = report.pop("covariance", None) if report else None  # saved for report's bands
     if args.save:
+        from ._analysis import usable_covariance
         from ._persist import save_model
 
-        save_model(report["model"] if report else model, args.save)
+        saved = report["model"] if report else model
+        save_model(saved, args.save, covariance=usable_covariance(saved, cov))
     if args.json:
         out = model.to_dict()
         if report:
@@ -182,6 +185,7 @@ def _refine_report(sig, model, vary_delays: bool) -> dict:
         "output_error_converged": oe.converged, "output_error_stabilised": oe.stabilised,
         "parameters": {name: {"value": float(v), "std_error": float(e)}
                        for name, v, e in zip(oe.names, oe.theta, oe.std_errors)},
+        "covariance": oe.covariance,
     }
 
 
@@ -522,15 +526,19 @@ def _cmd_search(args):
         report = {"model": est.model, "method": est.method, "converged": est.converged,
                   "srivc_status": est.srivc.describe(), "summary": est.summary(),
                   "parameters": {k: {"value": float(v), "std_error": float(e)} for k, v, e in
-                                 zip(est.names, _free_values(est.model), est.std_errors)}}
+                                 zip(est.names, _free_values(est.model), est.std_errors)},
+                  "covariance": est.covariance}
     if args.refine:
         best = result.best()
         sig_best = _with_delays(sig, best.delays)
         report = _refine_report(sig_best, best, bool(grid_delays))
+    cov = report.pop("covariance", None) if report else None  # saved for report's bands
     if args.save:
+        from ._analysis import usable_covariance
         from ._persist import save_model
 
-        save_model(report["model"] if report else result.best(), args.save)
+        saved = report["model"] if report else result.best()
+        save_model(saved, args.save, covariance=usable_covariance(saved, cov))
     if args.json:
         out = result.to_dict(top=args.top)
         if report:

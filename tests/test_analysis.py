@@ -261,6 +261,9 @@ def test_bands_from_a_fit_and_covariance_checks():
     bad = types.SimpleNamespace(model=model, covariance=COV, names=("x", "a_1", "b_10", "b_11"))
     with pytest.raises(ValueError, match=r"frequency_response\(\): the fit's parameters"):
         mfmjax.frequency_response(bad)
+    nan_fit = types.SimpleNamespace(model=model, covariance=np.full((4, 4), np.nan), names=())
+    with pytest.warns(UserWarning, match=r"step_response\(\): the fit carries no usable"):
+        assert mfmjax.step_response(nan_fit, 5.0, n_points=50).std is None
     with pytest.raises(TypeError, match=r"step_response\(\): model must be a Model or a fit"):
         mfmjax.step_response("model.json")
 

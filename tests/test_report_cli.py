@@ -104,3 +104,18 @@ def test_report_missing_files(files, capsys):
     assert "cannot read" in capsys.readouterr().err
     assert main(["report", str(folder / "model.json"), *ARGS, "-o", str(folder / "bad")]) == 2
     assert capsys.readouterr().err.startswith("error: ")
+
+
+def test_search_estimate_save_keeps_the_covariance_for_report(files, capsys):
+    """The CLI-only path: search --estimate --save writes SRIVC's covariance; report bands it."""
+    folder, _ = files
+    saved = folder / "estimated.json"
+    assert main(["search", str(folder / "data.csv"), *ARGS, "--n", "2", "--m", "0", "--N", "4",
+                 "--M", "4", "--h", "3", "--delays", "0.15", "--estimate", "--save",
+                 str(saved)]) == 0
+    doc = json.loads(saved.read_text())
+    assert doc["covariance"]["names"] == ["a_0", "a_1", "b_10"]
+    assert main(["report", str(saved), str(folder / "data.csv"), *ARGS, "-o",
+                 str(folder / "est")]) == 0
+    assert json.loads((folder / "est" / "report.json").read_text())["bands"] is True
+    capsys.readouterr()
