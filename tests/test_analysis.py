@@ -128,6 +128,9 @@ def test_residuals_window_and_errors():
         mfmjax.residuals(_model(), sig, lags=2.5)
     with pytest.raises(TypeError, match=r"residuals\(\): signals must be a Signals"):
         mfmjax.residuals(_model(), np.zeros(10))
+    two = Model.from_coefficients(A_TRUE, [[1.0], [2.0]])
+    with pytest.raises(ValueError, match=r"compare\(\): the model has 2 inputs but the signals"):
+        mfmjax.compare(two, sig)
 
 
 def test_compare_fit_is_the_numpy_nrmse(tmp_path):
