@@ -20,6 +20,9 @@ independence of input $k$: $Q = c^T S^{+} c \le \chi^2_{0.99}(\mathrm{rank}\,S)$
 $2L+1$ cross-correlations and $S_{ij} = \frac1N\sum_{k=-L}^{L} r_{ee}(k)\,r_{uu}(k + \tau_j -
 \tau_i)$ their Bartlett covariance (diagonal $P_1/N$; eigenvalues below $10^{-10}$ of the
 largest dropped).
+
+These verbs run eagerly on concrete data (the correlations in host NumPy; the responses and
+their Jacobians in jitted programs, one per structure and grid length).
 """
 
 from __future__ import annotations
