@@ -51,6 +51,10 @@ from ._signals import INTERSAMPLE, Signals
 from ._status import Status
 
 FORMAT, VERSION = "mfmjax-online", 1
+IMPROVEMENTS = ("window", "delay", "rank", "damping", "hold", "steady")  # mode="improved", in this order
+NOISE_FACTOR = 4.0  # improved steady test: the variance threshold is at least 4 noise variances
+HYSTERESIS = 2.0  # improved onset: the interval before a steady one exceeded 2x its threshold
+TOP_RANK = 16  # candidates (best E on the fit window) ranked on the longer window
 MAX_BUFFER_GIB = 1.0  # largest ring buffer OnlineConfig accepts (allocation-sized nonsense)
 
 
@@ -74,6 +78,19 @@ class OnlineConfig(eqx.Module):
     - `steady_rel`: an interval is steady when each signal's variance over it is below
       `steady_rel` times that signal's variance over all valid intervals so far; `steady_var`
       (output, then each input) replaces this by absolute thresholds.
+    - `mode`: `"paper"` (default: Algorithm 1 as the paper states it) or `"improved"`, which
+      applies the changes listed in `improvements` (default: all of `IMPROVEMENTS`):
+      `"window"`: `n_reident` 8 (2000 s windows) and h in {50, 100, 200} unless given;
+      `"delay"`: the delays of the inputs with a nonzero `delays` entry are searched on a grid
+      of step `delay_step` within `delay_span` of the value in use at every identification;
+      `"rank"`: candidates are fitted on the `n_reident` intervals before the one just closed,
+      and they and the current model are ranked by their Step-5 forecast of that interval (data
+      none was fitted on); the winner's settings are fitted again on the newest window;
+      `"damping"`: candidates with a pole of damping ratio below `min_damping` are refused;
+      `"hold"`: a model is replaced only when E_reident < (1 - `min_improvement`) E_current;
+      `"steady"`: the steadiness threshold is at least NOISE_FACTOR times each signal's
+      measured noise variance, and an operating point needs the interval before it to exceed
+      HYSTERESIS times its threshold.
     """
 
     dt: float = eqx.field(static=True)
@@ -99,17 +116,39 @@ class OnlineConfig(eqx.Module):
     steady_var: tuple | None = eqx.field(static=True)
     output_name: str = eqx.field(static=True)
     input_names: tuple = eqx.field(static=True)
+    mode: str = eqx.field(static=True)
+    improvements: tuple = eqx.field(static=True)
+    delay_step: float = eqx.field(static=True)
+    delay_span: float = eqx.field(static=True)
+    min_damping: float = eqx.field(static=True)
+    min_improvement: float = eqx.field(static=True)
 
     def __init__(
         self, *, dt: float, n_inputs: int, interval: float = 250.0, n_start: int = 8,
-        n_reident: int = 4, T_obfin: float = 500.0, T_obinit: float = 1000.0,
-        tr_corr: float = 0.5, n=(2, 3), m=None, N=(3, 5), M=(4, 6), h=(50.0, 100.0),
+        n_reident: int | None = None, T_obfin: float = 500.0, T_obinit: float = 1000.0,
+        tr_corr: float = 0.5, n=(2, 3), m=None, N=(3, 5), M=(4, 6), h=None,
         delays=None, intersample="foh", smooth=False, output_rule: str = "cubic",
         offset: bool = True, eta=None, steady_rel: float = 0.1, steady_var=None,
-        output_name: str = "y", input_names=None,
+        output_name: str = "y", input_names=None, mode: str = "paper", improvements=None,
+        delay_step: float = 5.0, delay_span: float = 20.0,
+        min_damping: float = 0.5, min_improvement: float = 0.1,
     ):
         fn = "OnlineConfig"
         _b.require_x64(fn)
+        mode = _b.choice(fn, "mode", mode, ("paper", "improved"))
+        if improvements is None:
+            improvements = IMPROVEMENTS if mode == "improved" else ()
+        elif mode == "paper" and len(improvements):
+            raise ValueError("OnlineConfig(): improvements need mode='improved' (paper mode is "
+                             f"Algorithm 1 as stated), got improvements={improvements!r}")
+        improvements = _tuple(improvements, str) if len(improvements) else ()
+        bad = [v for v in improvements if v not in IMPROVEMENTS]
+        if bad:
+            raise ValueError(f"OnlineConfig(): unknown improvements {bad}; choose from "
+                             f"{list(IMPROVEMENTS)}")
+        wide = "window" in improvements  # 2000 s re-identification windows, h up to 200 s
+        n_reident = (8 if wide else 4) if n_reident is None else n_reident
+        h = ((50.0, 100.0, 200.0) if wide else (50.0, 100.0)) if h is None else h
         K = _b.integer(fn, "n_inputs", n_inputs, lo=1, fix="the on-line identifier needs inputs")
         dt = _b.number(fn, "dt", dt, lo=0, lo_open=True, fix="give the sampling interval")
         interval = _b.number(fn, "interval", interval, lo=0, lo_open=True)
@@ -195,6 +234,16 @@ class OnlineConfig(eqx.Module):
         self.output_name = str(output_name)
         self.input_names = (_tuple(input_names, str) if input_names is not None
                             else tuple(f"u{k + 1}" for k in range(K)))
+        self.mode = mode
+        self.improvements = tuple(v for v in IMPROVEMENTS if v in improvements)
+        self.delay_step = _b.number(fn, "delay_step", delay_step, lo=0, lo_open=True)
+        self.delay_span = _b.number(fn, "delay_span", delay_span, lo=0)
+        if self.delay_span / self.delay_step > 50:
+            raise ValueError(f"OnlineConfig(): delay_span / delay_step must be <= 50 (a grid of "
+                             f"at most 101 delays), got {delay_span:g} / {delay_step:g}")
+        self.min_damping = _b.number(fn, "min_damping", min_damping, lo=0, hi=1)
+        self.min_improvement = _b.number(fn, "min_improvement", min_improvement, lo=0, hi=1,
+                                         hi_open=True)
         buffer = self.buffer
         gib = buffer * (K + 1) * 8 / 2**30
         if gib > MAX_BUFFER_GIB:
@@ -226,13 +275,13 @@ class OnlineConfig(eqx.Module):
         return round(self.T_obfin / self.dt) + 1
 
     @property
-    def buffer(self) -> int:
-        S = self.samples
-        return max(self.n_start * S, self.n_reident * S, self.ob_final + S + self.margin)
+    def buffer(self) -> int:  # improved "rank" fits on the n_reident intervals before the last
+        S, extra = self.samples, int("rank" in self.improvements)
+        return max(self.n_start * S, (self.n_reident + extra) * S, self.ob_final + S + self.margin)
 
     @property
     def history(self) -> int:  # intervals of statistics kept
-        return max(self.n_start, self.n_reident)
+        return max(self.n_start, self.n_reident + int("rank" in self.improvements))
 
     def to_dict(self) -> dict:
         return {f: getattr(self, f) for f in self.__dataclass_fields__}
@@ -247,7 +296,8 @@ class OnlineState(eqx.Module):
     buf_y: np.ndarray  # (L,) ring buffer, sample i at i % L
     buf_u: np.ndarray  # (L, K)
     stream: np.ndarray  # (3, K+1): count, mean, M2 of each signal over valid intervals
-    iv: np.ndarray  # (R, 4): valid, steady, onset, correlation of the last R intervals
+    noise: np.ndarray  # (2, K+1): valid intervals, mean per-interval noise variance estimate
+    iv: np.ndarray  # (R, 5): valid, steady, onset, correlation, level (max var / threshold)
     n_closed: np.ndarray  # intervals closed
     model: dict  # current model (padded arrays) and its bookkeeping
     op_count: np.ndarray  # operating points used so far
@@ -260,6 +310,7 @@ def _empty_model(config: OnlineConfig) -> dict:
         "exists": np.asarray(False), "a": z(nm + 1), "b": z(K, nm + 1), "offset": z(),
         "n": np.asarray(0), "m": np.zeros(K, dtype=np.int64), "N": z(), "M": z(), "h": z(),
         "number": np.asarray(0), "op": np.asarray(0), "op_time": np.asarray(np.nan),
+        "delays": np.asarray(config.delays, dtype=np.float64),
     }
 
 
@@ -272,7 +323,8 @@ def init(config: OnlineConfig) -> OnlineState:
     return OnlineState(
         config=config, t0=np.asarray(np.nan), n_seen=np.asarray(0),
         buf_y=np.full(L, np.nan), buf_u=np.full((L, K), np.nan),
-        stream=np.zeros((3, K + 1)), iv=np.zeros((config.history, 4)),
+        stream=np.zeros((3, K + 1)), noise=np.zeros((2, K + 1)),
+        iv=np.zeros((config.history, 5)),
         n_closed=np.asarray(0), model=_empty_model(config), op_count=np.asarray(0),
     )
 
@@ -301,18 +353,26 @@ def _window_signals(config: OnlineConfig, y, u, t0: float) -> Signals:
     )
 
 
-@functools.lru_cache(maxsize=8)
 def _plan_for(config: OnlineConfig, intervals: int):
     """The candidate grid checked and compiled once for a window of `intervals` intervals."""
+    return _plan_grid(config, intervals, tuple((float(d),) for d in config.delays))
+
+
+@functools.lru_cache(maxsize=256)
+def _plan_grid(config: OnlineConfig, intervals: int, delays: tuple, h: tuple | None = None):
+    """The candidate grid with a grid of delays per input (`delays`: one tuple per input) and
+    MF widths `h` (default config.h); every delay grid shares one compilation (kernels padded
+    to `span_bound`, or half the window for a window shorter than n_reident; chunks of len(h))."""
     L = intervals * config.samples
+    span = min(config.span_bound, intervals * config.interval / 2)
     template = _window_signals(config, np.zeros(L), np.zeros((L, config.n_inputs)), 0.0)
     p = config.n_max + 1 + sum(max(mk) + 1 for mk in config.m) + int(config.offset)
     eta = None if config.eta is None else np.resize(np.asarray(config.eta), p)
     return plan_search(
-        template, n=config.n, N=config.N, M=config.M, h=config.h, m=config.m,
-        delays=[[d] for d in config.delays], score="E", validate=None,
+        template, n=config.n, N=config.N, M=config.M, h=config.h if h is None else h, m=config.m,
+        delays=[list(d) for d in delays], score="E", validate=None,
         observer_window=min(config.T_obinit, (L - 1) * config.dt), eta=eta,
-        chunk_size=len(config.h), simulate=True, span_bound=config.span_bound,
+        chunk_size=len(config.h), simulate=True, span_bound=span,
     )
 
 
@@ -330,6 +390,12 @@ def _predict(sig, c, start: int, ob: int):
     return obs.y_sim[ob:], obs.status
 
 
+@eqx.filter_jit
+def _predict_many(sig, cs, start: int, ob: int):
+    """`_predict` of a stack of candidates: (y_sim (C, S), status (C,))."""
+    return jax.vmap(lambda c: _predict(sig, c, start, ob))(cs)
+
+
 # -- the state machine ------------------------------------------------------------------------
 
 
@@ -338,7 +404,7 @@ def _candidate(config: OnlineConfig, model: dict) -> dict:
     k = int(model["n"]) + sum(int(v) + 1 for v in model["m"]) + int(config.offset)
     return {"a": jnp.asarray(model["a"]), "b": jnp.asarray(model["b"]),
             "offset": jnp.asarray(model["offset"]), "n": jnp.asarray(model["n"]),
-            "delays": jnp.asarray(config.delays).reshape(K), "k": jnp.asarray(float(k))}
+            "delays": jnp.asarray(model["delays"]).reshape(K), "k": jnp.asarray(float(k))}
 
 
 def _take(state: OnlineState, start: int, length: int):
@@ -353,9 +419,13 @@ def _interval_stats(state: OnlineState, j: int):
     y, u = _take(state, j * S, S)
     valid = bool(np.all(np.isfinite(y)) and np.all(np.isfinite(u)))
     if not valid:
-        return valid, False, 0.0, None
+        return valid, False, 0.0, None, None, 0.0
     x = np.column_stack([y, u])
     var = x.var(axis=0)
+    dx = np.diff(x, axis=0)  # white noise: var(dx) = 2 sigma^2; MAD keeps steps out
+    nv = (1.4826 * np.median(np.abs(dx - np.median(dx, axis=0)), axis=0)) ** 2 / 2
+    n_iv = state.noise[0] + 1
+    noise = np.stack([n_iv, state.noise[1] + (nv - state.noise[1]) / n_iv])
     count, mean, m2 = state.stream
     total = count + S  # the stream statistics include this interval (Chan's merge)
     delta = x.mean(axis=0) - mean
@@ -364,18 +434,23 @@ def _interval_stats(state: OnlineState, j: int):
         thr = np.asarray(c.steady_var)
     else:
         thr = c.steady_rel * new[2] / new[0]
+    if "steady" in c.improvements:  # never below the noise: a quiet interval's var ~ sigma^2
+        thr = np.maximum(thr, NOISE_FACTOR * noise[1])
+    level = float(np.max(var / np.where(thr > 0, thr, np.inf))) if np.all(
+        thr > 0) else (0.0 if np.all(var <= thr) else math.inf)
     steady = bool(np.all(var <= thr))
     corr = 0.0
     L = state.buf_y.shape[0]
+    delays = state.model["delays"]  # the delays in use (tracked in improved mode)
     for k in range(K):  # against the delayed input, when its history is still in the buffer
-        shift = round(c.delays[k] / c.dt)
+        shift = round(float(delays[k]) / c.dt)
         if j * S - shift < 0 or shift > L - S:
             continue
         _, ud = _take(state, j * S - shift, S)
         ud = ud[:, k]
         if np.all(np.isfinite(ud)) and np.ptp(ud) > 0 and np.ptp(y) > 0:  # constant: no corr
             corr = max(corr, abs(float(np.corrcoef(y, ud)[0, 1])))
-    return valid, steady, corr, new
+    return valid, steady, corr, new, noise, level
 
 
 def _model_record(config, model: dict, window, E_current, E_reident, reason, j, op_label):
@@ -389,7 +464,8 @@ def _model_record(config, model: dict, window, E_current, E_reident, reason, j, 
         "a": [float(v) for v in model["a"][: n + 1]],
         "b": [[float(v) for v in model["b"][k][: m[k] + 1]] for k in range(config.n_inputs)],
         "offset": float(model["offset"]) if config.offset else None,
-        "delays": list(config.delays), "E_current": E_current, "E_reident": E_reident,
+        "delays": [float(v) for v in model["delays"]], "E_current": E_current,
+        "E_reident": E_reident,
         "reason": reason,
     }
 
@@ -447,16 +523,155 @@ def _outlier(state: OnlineState, j: int, w: int) -> str | None:
     return None
 
 
-def _identify_window(state: OnlineState, j: int, w: int):
-    """The batched search on the last `w` intervals: (window signals, plan, result)."""
+def _identify_window(state: OnlineState, j: int, w: int, delays: tuple | None = None,
+                     h: tuple | None = None):
+    """The batched search on the `w` intervals up to j: (window signals, plan, result)."""
     c = state.config
     S = c.samples
     start = (j + 1 - w) * S
     y, u = _take(state, start, w * S)
     t_start = float(state.t0) + start * c.dt
     sig = _window_signals(c, y, u, 0.0)  # t0 is static in Signals: one compilation
-    plan = _plan_for(c, w)
+    plan = _plan_for(c, w) if delays is None else _plan_grid(c, w, delays, h)
     return sig, plan, run_plan(plan, sig), (t_start, t_start + w * S * c.dt)
+
+
+def _delay_grid(config: OnlineConfig, current) -> tuple:
+    """Improved mode's delays to try per input: the current value +- `delay_span` in steps of
+    `delay_step` for each input with a nonzero configured delay (0 <= d, d + max h below the
+    span bound that fixes the compiled kernel length); the current value alone otherwise."""
+    out = []
+    r = int(round(config.delay_span / config.delay_step))
+    for k in range(config.n_inputs):
+        d = round(float(current[k]), 9)
+        if "delay" not in config.improvements or config.delays[k] == 0:
+            out.append((d,))
+            continue
+        vals = [round(d + i * config.delay_step, 9) for i in range(-r, r + 1)]
+        vals = [v for v in vals if v >= 0 and v + max(config.h) < config.span_bound]
+        out.append(tuple(vals) or (d,))
+    return tuple(out)
+
+
+def _damping_ok(a, n: int, zeta: float) -> bool:
+    """Every pole of a_n s^n + ... + a_0 in the open left half plane with damping ratio >=
+    `zeta` (a thermal process does not ring; the data's bandwidth supports no oscillation)."""
+    p = np.roots(np.asarray(a[: n + 1], dtype=np.float64)[::-1])
+    if p.size == 0:
+        return True
+    if not np.all(np.isfinite(p)) or np.any(p.real >= 0):
+        return False
+    return bool(np.all(-p.real >= zeta * np.abs(p) - 1e-12 * np.abs(p)))
+
+
+def _stack(config: OnlineConfig, picks, fill: dict) -> dict:
+    """Candidates `picks` ((search result, column) pairs) as one padded stack (`_candidate`'s
+    layout), `fill` (a `_candidate`) first and repeated up to 1 + 2 TOP_RANK rows (a fixed
+    shape: one compilation)."""
+    K, nm = config.n_inputs, config.n_max
+    C = 1 + 2 * TOP_RANK
+    a = np.repeat(np.asarray(fill["a"])[None], C, 0)
+    b = np.repeat(np.asarray(fill["b"])[None], C, 0)
+    off = np.repeat(np.asarray(fill["offset"])[None], C, 0)
+    n = np.repeat(np.asarray(fill["n"])[None], C, 0)
+    d = np.repeat(np.asarray(fill["delays"])[None], C, 0)
+    k = np.repeat(np.asarray(fill["k"])[None], C, 0)
+    for r, (res, i) in enumerate(picks, start=1):
+        cols = res.columns
+        a[r] = cols["a"][i][: nm + 1]
+        b[r] = 0.0
+        b[r][:, : cols["b"].shape[2]] = cols["b"][i]
+        off[r] = cols["offset"][i] if config.offset else 0.0
+        n[r] = cols["n"][i]
+        d[r] = cols["delays"][i]
+        k[r] = int(cols["n"][i]) + sum(int(v) + 1 for v in cols["m"][i]) + int(config.offset)
+    return {"a": jnp.asarray(a), "b": jnp.asarray(b), "offset": jnp.asarray(off),
+            "n": jnp.asarray(n), "delays": jnp.asarray(d).reshape(C, K), "k": jnp.asarray(k)}
+
+
+def _ok_columns(config: OnlineConfig, res) -> list:
+    """Column indices of the candidates with status ok (and, with "damping", well damped
+    poles), best E on the fit window first."""
+    cols = res.columns
+    ok = [int(i) for i in res.rank if int(cols["status"][i]) == 0]
+    if "damping" in config.improvements:
+        ok = [i for i in ok if _damping_ok(cols["a"][i], int(cols["n"][i]), config.min_damping)]
+    return ok
+
+
+def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
+    """Improved mode's identification at the end of interval j on the last `w` intervals.
+
+    The search runs over `_delay_grid` around the delays in use; `_ok_columns` keeps the
+    candidates with status ok (and well damped poles). Without "rank" (or for the first model)
+    the best E on the fit window wins, and the current model's E is on the same window. With
+    "rank", the candidates are fitted on the `w` intervals before interval j (and, with
+    "window", also on the w/2 before it, with the h that fit there), and the best TOP_RANK of
+    each pool by E and the current model each predict interval j exactly as Step 5 does
+    (final-state observer, then simulation): data none of them was fitted on. The winner's
+    settings (window length, structure, N, M, h, delays) are then fitted again on the newest
+    window. Returns (best row or None, E of the current model or None, E of the best, the fit
+    window, what the E values are on)."""
+    c = state.config
+    S, R = c.samples, c.history
+    delays = _delay_grid(c, state.model["delays"])
+    current = _candidate(c, model) if model is not None else None
+    hold = ("rank" in c.improvements and current is not None and j >= w
+            and all(state.iv[(j - i) % R][0] for i in range(min(w + 1, R))) and w + 1 <= R)
+    sig_p = None
+    if hold:
+        reach = max(max(d) for d in delays) if delays else 0.0
+        sig_p, _ = _prediction_signals(state, j, max(reach, float(np.max(model["delays"]))))
+    if sig_p is None:  # rank on the fit window
+        sig, plan, res, window = _identify_window(state, j, w, delays)
+        ok = _ok_columns(c, res)
+        if not ok:
+            return None, None, None, window, "fit window"
+        i = ok[0]
+        E_cur = float(_score(sig, plan.static, current)["E"]) if current is not None else None
+        return _row(res, i), E_cur, float(res.columns["E"][i]), window, "fit window"
+    pools = [(w, None)]
+    w_s = w // 2
+    if "window" in c.improvements and w_s >= 1:
+        reach = max(max(d) for d in delays)
+        h_s = tuple(v for v in c.h if v + reach < w_s * c.interval / 2)
+        if h_s:
+            pools.append((w_s, h_s))
+    picks, window = [], None
+    for wp, hp in pools:
+        _, _, res, win = _identify_window(state, j - 1, wp, delays, hp)
+        window = window or win
+        picks += [(res, i, wp, hp) for i in _ok_columns(c, res)[:TOP_RANK]]
+    if not picks:
+        return None, None, None, window, "forecast"
+    y_sim, status = _predict_many(sig_p, _stack(c, [p[:2] for p in picks], current), c.margin,
+                                  c.ob_final)
+    y_j, _ = _take(state, j * S, S)
+    E = np.sum((np.asarray(y_sim) - y_j) ** 2, axis=1) * c.dt
+    E = np.where((np.asarray(status) == 0) & np.isfinite(E), E, np.inf)
+    best = int(np.argmin(E[1 : 1 + len(picks)]))
+    if not math.isfinite(E[1 + best]):
+        return None, None, None, window, "forecast"
+    res, i, wp, hp = picks[best]
+    winner = _row(res, i)
+    # the winner's settings fitted again on the newest window (it includes interval j)
+    _, _, res2, window2 = _identify_window(state, j, wp, tuple((d,) for d in winner["delays"]),
+                                           hp)
+    same = [i for i in _ok_columns(c, res2) if int(res2.columns["n"][i]) == winner["n"]
+            and [int(v) for v in res2.columns["m"][i]] == winner["m"]
+            and float(res2.columns["N"][i]) == float(winner["N"])
+            and float(res2.columns["M"][i]) == float(winner["M"])
+            and float(res2.columns["h"][i]) == winner["h"]]
+    if same:
+        winner, window = _row(res2, same[0]), window2
+    else:
+        window = (window[0] + (w - wp) * S * c.dt, window[1])
+    return winner, float(E[0]), float(E[1 + best]), window, f"forecast of interval {j}"
+
+
+def _row(res, i: int) -> dict:
+    """The row of a search result by column index (not rank)."""
+    return res.row(int(np.flatnonzero(res.rank == i)[0]))
 
 
 def _best_ok(res):
@@ -478,11 +693,13 @@ def _as_model(config: OnlineConfig, row: dict, number: int, op: int, op_time: fl
         "m": np.asarray(row["m"], dtype=np.int64), "N": np.asarray(float(row["N"])),
         "M": np.asarray(float(row["M"])), "h": np.asarray(row["h"]),
         "number": np.asarray(number), "op": np.asarray(op), "op_time": np.asarray(op_time),
+        "delays": np.asarray(row["delays"], dtype=np.float64),
     }
 
 
-def _prediction(state: OnlineState, j: int):
-    """Step 5 of interval j-1, evaluated when interval j closes: (y_pred (S,), reason)."""
+def _prediction_signals(state: OnlineState, j: int, delay: float):
+    """The observer window and interval j's inputs as Signals (outputs after the observer window
+    zeroed; inputs older than `delay` before it zeroed), or (None, why not)."""
     c = state.config
     S, ob, mg = c.samples, c.ob_final, c.margin
     start = j * S - ob - mg
@@ -491,11 +708,20 @@ def _prediction(state: OnlineState, j: int):
     y, u = _take(state, start, mg + ob + S)
     y, u = y.copy(), u.copy()
     y[: mg], y[mg + ob :] = 0.0, 0.0  # outputs outside the observer window are not used
-    need = math.ceil(max(c.delays) / c.dt) + 1  # input history the delays really reach
+    need = math.ceil(delay / c.dt) + 1  # input history the delays reach
     u[: mg - need] = 0.0  # (the margin is sized for the largest allowed delay)
     if not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
         return None, "no prediction: NaN samples in the observer window or inputs"
-    sig = _window_signals(c, y, u, 0.0)
+    return _window_signals(c, y, u, 0.0), "predicted"
+
+
+def _prediction(state: OnlineState, j: int):
+    """Step 5 of interval j-1, evaluated when interval j closes: (y_pred (S,), reason)."""
+    c = state.config
+    ob, mg = c.ob_final, c.margin
+    sig, why = _prediction_signals(state, j, float(np.max(state.model["delays"])))
+    if sig is None:
+        return None, why
     y_pred, status = _predict(sig, _candidate(c, state.model), mg, ob)
     if int(status) != 0:
         return None, "no prediction: observer failed (" + Status(int(status)).name + ")"
@@ -506,11 +732,14 @@ def _close_interval(state: OnlineState, j: int):
     """Algorithm 1 at the end of interval j (0-based): returns (state, event, record, y_pred)."""
     c = state.config
     S, R = c.samples, c.history
-    valid, steady, corr, stream = _interval_stats(state, j)
+    valid, steady, corr, stream, noise, level = _interval_stats(state, j)
     prev_steady = bool(state.iv[(j - 1) % R, 1]) if j > 0 else False
-    onset = steady and not prev_steady
+    if "steady" in c.improvements:  # onset: steady after an interval clearly not steady
+        onset = steady and j > 0 and float(state.iv[(j - 1) % R, 4]) > HYSTERESIS
+    else:
+        onset = steady and not prev_steady
     iv = state.iv.copy()
-    iv[j % R] = [valid, steady, onset, corr]
+    iv[j % R] = [valid, steady, onset, corr, level]
     t_iv = float(state.t0) + j * S * c.dt
     event = {"interval": j, "t_start": t_iv, "t_end": t_iv + S * c.dt, "valid": valid,
              "steady": steady, "operating_point": onset, "corr": corr, "action": "none",
@@ -521,7 +750,7 @@ def _close_interval(state: OnlineState, j: int):
         y_pred, event["prediction"] = _prediction(state, j)
     state = eqx.tree_at(lambda s: (s.iv, s.n_closed), state, (iv, np.asarray(j + 1)))
     if stream is not None:
-        state = eqx.tree_at(lambda s: s.stream, state, stream)
+        state = eqx.tree_at(lambda s: (s.stream, s.noise), state, (stream, noise))
 
     def recent(w):  # rows of the last w intervals that exist
         return [iv[(j - i) % R] for i in range(min(w, j + 1))]
@@ -541,6 +770,29 @@ def _close_interval(state: OnlineState, j: int):
             event["action"] = f"skipped: input-output correlation below tr_corr={c.tr_corr:g}"
         elif not has and (spike := _outlier(state, j, w)) is not None:
             event["action"] = spike
+        elif c.mode == "improved":
+            best, E_cur, E_best, window, on = _improved_choice(state, j, w, model if has else None)
+            factor = 1.0 - (c.min_improvement if "hold" in c.improvements else 0.0)
+            E_cur_ok = E_cur is not None and math.isfinite(E_cur)
+            event.update(E_current=E_cur if E_cur_ok else None, E_reident=E_best, E_on=on)
+            if best is None:
+                event["action"] = "rejected: every candidate was flagged"
+            elif not has:
+                new = _as_model(c, best, 1, 1, op_time)
+                event.update(action="first model")
+                record = _model_record(c, new, window, None, E_best, "first model", j, "p1")
+                state = eqx.tree_at(lambda s: (s.model, s.op_count), state, (new, np.asarray(1)))
+            elif not E_cur_ok or E_best < factor * E_cur:
+                same_op = float(model["op_time"]) == op_time
+                op = int(state.op_count) + (0 if same_op else 1)
+                new = _as_model(c, best, int(model["number"]) + 1, op, op_time)
+                event["action"] = (f"model updated: E_reident < {factor:g} E_current ({on})")
+                record = _model_record(c, new, window, event["E_current"], E_best,
+                                       event["action"], j, f"p{op}")
+                state = eqx.tree_at(lambda s: (s.model, s.op_count), state,
+                                    (new, np.asarray(op)))
+            else:
+                event["action"] = f"kept: E_reident >= {factor:g} E_current ({on})"
         else:
             sig, plan, res, window = _identify_window(state, j, w)
             best = _best_ok(res)

@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+# both figures share these horizontal margins (fractions of the width), so that their time axes
+# line up when the inputs figure is shown above or below the prediction figure
+LEFT, RIGHT = 0.08, 0.98
+
 
 def _pyplot():
     try:
@@ -16,38 +20,65 @@ def _pyplot():
     return plt
 
 
+def broken_at_switches(y_pred, model_number):
+    """`y_pred` with NaN inserted where the predicting model changes: (index map, values) such
+    that a line plot shows a gap at each switch instead of a vertical jump."""
+    y_pred = np.asarray(y_pred, dtype=np.float64)
+    mn = np.asarray(model_number)
+    cut = np.flatnonzero(mn[1:] != mn[:-1]) + 1  # first sample of each new model
+    return np.insert(np.arange(y_pred.size, dtype=np.float64), cut, np.nan), np.insert(
+        y_pred, cut, np.nan)
+
+
 def plot_online(series: dict, models: list[dict], path, *, title: str = "", ylabel: str = "y",
-                end: float | None = None) -> None:
+                end: float | None = None, start: float | None = None) -> None:
     """Measured and predicted output; the intervals in which each model predicted on
-    alternating blue/yellow backgrounds (green: before the first model); operating points as
-    dotted lines (the paper's Fig. 3 and 5). Written as a PNG to `path`."""
+    alternating blue/yellow bands labelled with the model number (green: before the first
+    model); operating points as dotted lines labelled p1, p2, ... (the paper's Fig. 3 and 5).
+    The predicted line is broken where the model changes. Written as a PNG to `path`."""
     plt = _pyplot()
     t, y, y_pred = series["t"], series["y"], series["y_pred"]
     fig, ax = plt.subplots(figsize=(10, 4), dpi=100)
+    t0 = (float(t[0]) if t.size else 0.0) if start is None else start
     t_end = float(t[-1]) if end is None and t.size else end
     if models:
-        ax.axvspan(float(t[0]) if t.size else 0.0, models[0]["sim_start"], color="#cfe8cf",
-                   lw=0, label="identifying model 1")
+        ax.axvspan(t0, models[0]["sim_start"], color="#cfe8cf", lw=0,
+                   label="identifying model 1")
     for i, rec in enumerate(models):
         stop = rec["sim_end"] if rec["sim_end"] is not None else t_end
-        ax.axvspan(rec["sim_start"], stop, color=("#d6e4f5", "#f7efc6")[i % 2], lw=0)
-    for time in sorted({rec["operating_point_time"] for rec in models}):
-        ax.axvline(time, color="k", ls=":", lw=1.0)
+        ax.axvspan(rec["sim_start"], stop, color=("#d6e4f5", "#f7efc6")[i % 2], lw=0,
+                   label="model k predicts (band k)" if i == 0 else None)
+        ax.text((rec["sim_start"] + stop) / 2, 0.97, str(rec["model"]), transform=ax.get_xaxis_transform(),
+                ha="center", va="top", fontsize=8, color="#333333")
+    ops = {}
+    for rec in models:
+        ops.setdefault(rec["operating_point_time"], rec["operating_point"])
+    for k, (time, label) in enumerate(sorted(ops.items())):
+        ax.axvline(time, color="k", ls=":", lw=1.0, label="operating point" if k == 0 else None)
+        ax.text(time, 0.03, f" {label}", transform=ax.get_xaxis_transform(), fontsize=8,
+                ha="left", va="bottom")
     ax.plot(t, y, lw=1.1, color="#1f3b73", label="measured")
-    ax.plot(t, y_pred, lw=1.1, color="#d2501e", label="predicted")
+    if "model_number" in series and len(t):
+        idx, yp = broken_at_switches(y_pred, series["model_number"])
+        tp = np.interp(idx, np.arange(t.size), t)  # NaN indices stay NaN
+        ax.plot(tp, yp, lw=1.1, color="#d2501e", label="predicted")
+    else:
+        ax.plot(t, y_pred, lw=1.1, color="#d2501e", label="predicted")
     ax.set_xlabel("time [s]")
     ax.set_ylabel(ylabel)
     if title:
-        ax.set_title(title)
-    ax.set_xlim(float(t[0]) if t.size else 0.0, t_end or 1.0)
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
+        ax.set_title(title, fontsize=10)
+    ax.set_xlim(t0, t_end or 1.0)
+    ax.legend(loc="lower right", fontsize=7, ncol=3)
+    fig.subplots_adjust(left=LEFT, right=RIGHT, bottom=0.13, top=0.91)
     fig.savefig(path)
     plt.close(fig)
 
 
-def plot_inputs(t, u, names, path, *, extra=None, extra_name: str = "", title: str = "") -> None:
-    """The inputs (and an unmeasured disturbance such as the pull rate) stacked (Fig. 2 and 4)."""
+def plot_inputs(t, u, names, path, *, extra=None, extra_name: str = "", title: str = "",
+                xlim=None) -> None:
+    """The inputs (and an unmeasured disturbance such as the pull rate) stacked (Fig. 2 and 4),
+    on the time axis `xlim` (default: the data's) with the prediction figure's margins."""
     plt = _pyplot()
     rows = u.shape[1] + (extra is not None)
     fig, axes = plt.subplots(rows, 1, figsize=(10, 1.8 * rows + 0.6), dpi=100, sharex=True)
@@ -59,12 +90,12 @@ def plot_inputs(t, u, names, path, *, extra=None, extra_name: str = "", title: s
         axes[-1].plot(t, extra, lw=1.0, color="#7a3b8f")
         axes[-1].set_ylabel(extra_name)
     axes[-1].set_xlabel("time [s]")
+    axes[-1].set_xlim(*(xlim if xlim is not None else (float(t[0]), float(t[-1]))))
     if title:
-        axes[0].set_title(title)
-    fig.tight_layout()
+        axes[0].set_title(title, fontsize=10)
+    fig.subplots_adjust(left=LEFT, right=RIGHT, bottom=0.09, top=0.94, hspace=0.12)
     fig.savefig(path)
     plt.close(fig)
-
 
 # -- analysis figures (compare, residuals, step, Bode; see mfmjax._analysis) --------------------
 
