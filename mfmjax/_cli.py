@@ -513,21 +513,24 @@ def _cmd_search(args):
         kwargs["delays"] = _per_input_grid(grid_delays, "delays", K, False)
     if args.validate:
         kwargs["validate"] = _window(args.validate, "validate")
-    result = mfmjax.search(sig, progress=_Progress("search"), **kwargs)
-    report = None
     if args.estimate and args.refine:
         raise _UserError("--estimate and --refine are two ways to improve the winner; give one")
-    if args.estimate:
-        from ._estimate import estimate_from_search
-
+    report = None
+    if args.estimate:  # mfmjax.estimate's path: its search table, ranked on held-back data
+        kwargs.pop("score")
+        kwargs.pop("validate", None)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            est = estimate_from_search(sig, result)
+            est = mfmjax.estimate(sig, **kwargs)
+        result = est.search
         report = {"model": est.model, "method": est.method, "converged": est.converged,
-                  "srivc_status": est.srivc.describe(), "summary": est.summary(),
+                  "srivc_status": est.srivc.describe() if est.srivc is not None else "not run",
+                  "selection": est.selection, "summary": est.summary(),
                   "parameters": {k: {"value": float(v), "std_error": float(e)} for k, v, e in
                                  zip(est.names, _free_values(est.model), est.std_errors)},
                   "covariance": est.covariance}
+    else:
+        result = mfmjax.search(sig, progress=_Progress("search"), **kwargs)
     if args.refine:
         best = result.best()
         sig_best = _with_delays(sig, best.delays)
@@ -541,12 +544,15 @@ def _cmd_search(args):
         save_model(saved, args.save, covariance=usable_covariance(saved, cov))
     if args.json:
         out = result.to_dict(top=args.top)
+        if args.estimate:
+            out["score"] = "holdout E"  # the table of estimate: ranked on held-back data
         if report:
             key = "estimated" if "summary" in report else "refined"
             out[key] = {k: v for k, v in report.items() if k not in ("model", "summary")}
         _print_json(out)
     else:
-        print(f"{len(result)} candidates, ranked by {args.score} "
+        print(f"{len(result)} candidates, ranked by "
+              f"{'E on held-back data' if args.estimate else args.score} "
               f"(compile {result.compile_s:.1f} s, run {result.run_s:.1f} s)")
         print(result.table(args.top))
         if report and "summary" in report:

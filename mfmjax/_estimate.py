@@ -1,8 +1,9 @@
-r"""`estimate`: one call from noisy data to a consistent model with its uncertainty.
+r"""`estimate`: one call from data to a consistent model with its uncertainty.
 
-search (MFM over every structure and modulating-function setting of a grid, eq. 1-17)
+search (MFM over every structure and modulating-function setting of a grid, eq. 1-17), the
+structure chosen on held-back data (`_selection`) or by BIC
 -> SRIVC from the winner (`srivc`: consistent under output noise, CRB-level spread)
--> optionally an output-error polish (`output_error`).
+-> an output-error polish (`output_error`) when it predicts the held-back data better.
 The MFM closed form stays the initialiser: it is fast and exact on noise-free data, but its
 equation error is biased under output noise; SRIVC removes that bias at a few ms per fit.
 """
@@ -15,67 +16,254 @@ import equinox as eqx
 import numpy as np
 
 from ._model import Model
-from ._output_error import OutputErrorFit, output_error, stabilised
+from ._observers import observe
+from ._output_error import OutputErrorFit, free_parameters, output_error, stabilised
 from ._search import SearchResult, search
+from ._selection import OBSERVER_FRACTION, holdout_search, rank_by
 from ._signals import Signals
 from ._srivc import SrivcFit, srivc
+from ._observers import fit_percent
+from ._pytree import replace_fields
 from ._status import describe
 
 
 class Estimate(eqx.Module):
     """Result of `estimate`: the model, the path that produced it and its uncertainty."""
 
-    model: Model  # the returned model (SRIVC, or output error when polished)
+    model: Model  # the returned model
     start: Model  # the search's winner (the MFM estimate)
-    search: SearchResult
-    srivc: SrivcFit
+    search: SearchResult  # ranked by the selection rule (hold-out E or BIC)
+    srivc: SrivcFit | None
     output_error: OutputErrorFit | None
     names: tuple  # free parameters, ordered as std_errors
     std_errors: np.ndarray
     covariance: np.ndarray  # of the free parameters, ordered as names (the last stage's)
-    converged: bool  # the last stage met its tolerance
+    converged: bool  # the returned stage met its tolerance
     stabilised: bool  # the MFM winner had right-half-plane poles, mirrored before SRIVC
-    method: str  # "srivc" or "srivc + output error"
+    method: str  # "mfm", "srivc", "srivc + output error" or "output error"
+    selection: str  # how the structure was chosen, in words
+    holdout: dict  # hold-out fit % of each stage tried ({} with selection="bic")
+    notes: tuple  # data decisions (offset rule) and fallbacks, in words
 
     def summary(self) -> str:
         """The model, the standard errors, how it was reached and whether it converged."""
         lines = [self.model.summary(), f"method: MFM search -> {self.method}",
-                 f"{'parameter':<12}{'std error':>14}"]
+                 f"selection: {self.selection}"]
+        if self.holdout:
+            lines.append("hold-out fit %: " + ", ".join(
+                f"{k} {v:.1f}" for k, v in self.holdout.items()))
+        lines.append(f"{'parameter':<12}{'std error':>14}")
         lines += [f"{k:<12}{float(v):>14.3e}" for k, v in zip(self.names, self.std_errors)]
+        lines += list(self.notes)
         if self.stabilised:
             lines.append("the MFM winner was unstable: its right-half-plane poles were mirrored")
         lines.append("converged" if self.converged else
                      "NOT CONVERGED: the estimate is the best iterate; its standard errors are "
-                     f"not trustworthy (SRIVC: {self.srivc.describe()})")
+                     "not trustworthy" + (f" (SRIVC: {self.srivc.describe()})"
+                                          if self.srivc is not None else ""))
         return "\n".join(lines)
+
+
+SELECTIONS = ("holdout", "bic")
+POLISH_GAIN = 0.05  # a stage must lower the hold-out E by 5 % to replace a more robust one
 
 
 def estimate(
     signals: Signals, *, h, n=(1, 2, 3), N=(3, 4, 5), M=(3, 4, 5), m=None, delays=None,
-    score: str = "bic", validate=None, polish: bool = False, max_iter: int = 30,
-    tol: float = 1e-8,
+    selection: str = "holdout", holdout: float = 1 / 3, identify=None, score: str = "bic",
+    validate=None, polish: bool | None = None, max_iter: int = 30, tol: float = 1e-8,
 ) -> Estimate:
-    r"""Noise-robust identification in one call: `search` -> `srivc` -> (`output_error`).
+    r"""Identification in one call: `search` -> `srivc` -> (`output_error`), every choice made
+    on data the candidate was not fitted on.
 
-    The batched MFM search ranks every structure (n, m) and setting (N, M, h, delays) of the
-    grid by `score`, default BIC (E of eq. 17 on `validate` plus $k \ln N_v$): under output
-    noise E on the fitted data rewards extra parameters (a 2nd-order plant at 10 dB SNR: E picked
-    n = 3 with standard errors of the size of the parameters, BIC n = 2). Its winner, with any
-    right-half-plane
-    poles mirrored, starts SRIVC (exact prefilters, instruments from the noise-free auxiliary
-    model), which removes the equation-error bias of MFM under output noise. `polish=True`
-    adds an output-error fit from the SRIVC model (useful when the noise is not white or the
-    record short). Grid arguments are those of `search`.
+    - `selection="holdout"` (default): the last `holdout` share (1/3) of the estimation data
+      (`identify`: a window or a list of windows, default the record) is left out of the Gram;
+      every candidate of the grid is scored by its simulation error E (eq. 17) there, the
+      state from the initial-state observer over its first 20 %; the winner is re-identified
+      on all estimation data. `selection="bic"`: BIC ($N \ln(E/T) + k \ln N$, `score` and
+      `validate` as in `search`) on the estimation data, the previous default.
+    - Stages: the winner (stabilised: right-half-plane poles mirrored) starts SRIVC (exact
+      prefilters, instruments from the noise-free auxiliary model), which removes the
+      equation-error bias of MFM under output noise. `polish=None` (default) tries an
+      output-error fit too and keeps it when it lowers the hold-out E by `POLISH_GAIN` (5 %).
+      The best `STRUCTURES` (8) structures of the search go through SRIVC; the plain MFM
+      estimate is kept only where it predicts the hold-out 5 % better than every SRIVC fit
+      (real data whose noise is not white can favour it); a stage that did not converge is
+      not kept (each stage's hold-out fit is in `holdout`). `polish=True`/`False` forces it.
+    - Grid arguments are those of `search`; include `m` up to n (feed-through) where the data
+      have lag-0 effects.
 
-    **Returns:** `Estimate`: `model`, `std_errors` (SRIVC's IV covariance, or output error's
-    Gauss-Newton covariance when polished), `converged`, and every stage's result. A stage that
-    did not converge says so in `converged` and `summary()`, and warns.
+    **Returns:** `Estimate`: `model`, `std_errors` and `covariance` (SRIVC's IV covariance,
+    or output error's Gauss-Newton covariance; NaN for the plain MFM stage), `converged`,
+    `selection`, `holdout` and every stage's result. A stage that did not converge says so
+    in `converged` and `summary()`, and warns.
     """
-    if not isinstance(polish, bool):
-        raise TypeError(f"estimate(): polish must be True or False (got {polish!r})")
-    res = search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score,
-                 validate=validate)
-    return estimate_from_search(signals, res, polish=polish, max_iter=max_iter, tol=tol)
+    if polish is not None and not isinstance(polish, bool):
+        raise TypeError(f"estimate(): polish must be True or False (or None: decided on the "
+                        f"hold-out data), got {polish!r}")
+    if selection not in SELECTIONS:
+        raise ValueError(f"estimate(): selection must be one of {SELECTIONS} "
+                         f"(got {selection!r})")
+    notes = (signals.offset_note,) if signals.offset_note else ()
+    if selection == "bic":
+        if identify is not None:
+            raise ValueError("estimate(): identify windows need selection='holdout'")
+        res = search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score,
+                     validate=validate)
+        out = estimate_from_search(signals, res, polish=bool(polish), max_iter=max_iter,
+                                   tol=tol)
+        return replace_fields(out, notes=notes + out.notes)
+    sel = holdout_search(signals, estimation=identify, holdout=holdout, n=n, N=N, M=M, h=h,
+                         m=m, delays=delays)
+    if len(sel.fitted) == 0:
+        raise ValueError("estimate(): the search grid has no feasible candidate; widen N, M or h")
+    order = rank_by(sel.fitted, "bic")
+    j_bic = int(order[0])
+    win = sel.fitted.row(0)
+    by_bic = (int(sel.fitted.columns["n"][j_bic]),
+              [int(v) for v in sel.fitted.columns["m"][j_bic]])
+    selection_text = (f"hold-out E on the last {holdout:.0%} of the estimation data (fit "
+                      f"{win['fit']:.1f} %); BIC on the same window would pick n={by_bic[0]} "
+                      f"m={by_bic[1]}")
+    if len(sel.estimation) > 1 or len(sel.fit_windows) > 1:
+        # several experiments: the stages after MFM simulate one record; keep MFM
+        start = sel.refit.best(0)
+        model = start.labelled(signals.output_name, signals.input_names)
+        names = free_parameters(start)[0]
+        nan = np.full(len(names), np.nan)
+        return Estimate(model, start, sel.refit, None, None, names, nan, np.diag(nan), True,
+                        False, "mfm", selection_text, {}, notes + (
+                            "several estimation windows: the MFM estimate of their summed "
+                            "Grams is returned (SRIVC and output error need one record)",))
+    fit_sig = signals.window(*sel.fit_windows[0])
+    est_sig = signals.window(*sel.estimation[0])
+    hold = sel.holdout
+    ob = OBSERVER_FRACTION * (hold[1] - hold[0])
+    y_hold = np.asarray(signals.window(*hold).y)
+
+    def hold_score(model):
+        try:
+            o = observe(model, signals, hold, observer_window=ob)
+        except ValueError:  # overflow / unobservable on the hold-out: not a usable stage
+            return np.inf, np.nan
+        return float(o.E), float(fit_percent(y_hold, o.y_sim))
+
+    # every stage fitted without the hold-out window and compared on it: the MFM winner of each
+    # of the best `STRUCTURES` structures, and SRIVC from it; then output error on the best
+    tried = []  # (hold-out E, hold-out fit, rank in the search, stage, fit-part model)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for i in _best_per_structure(sel.fitted, STRUCTURES):
+            first = sel.fitted.best(i)
+            tried.append((*hold_score(first), i, "mfm", first))
+            sv = _staged(srivc, fit_sig, first, max_iter=max_iter, tol=tol)
+            if sv is not None and bool(sv.converged):
+                tried.append((*hold_score(sv.model), i, "srivc", sv.model))
+        # the consistent estimator is preferred: plain MFM (biased under output noise) must
+        # predict the hold-out better by POLISH_GAIN, as output error must to replace SRIVC
+        best = min(tried, key=lambda r: r[0] / (1 - POLISH_GAIN) if r[3] == "mfm" else r[0])
+        if polish is not False:
+            base = best[4] if best[3] == "srivc" else stabilised(sel.fitted.best(best[2]))[0]
+            oe = _staged(output_error, fit_sig, base)
+            if oe is not None and oe.converged:
+                stage = "srivc + output error" if best[3] == "srivc" else "output error"
+                E_oe, fit_oe = hold_score(oe.model)
+                if polish or E_oe < (1 - POLISH_GAIN) * best[0]:
+                    best = (E_oe, fit_oe, best[2], stage, oe.model)
+    i, method = best[2], best[3]
+    held = {f"{r[3]} n={r[4].n} m={list(r[4].m)}": r[1] for r in tried}
+    held[f"chosen: {method}"] = best[1]
+    # the chosen stage on all estimation data, from the same candidate re-identified there
+    start = sel.refit.best(i)
+    seed, was_unstable = stabilised(start)
+    fit, oe, cov, model, names, converged = None, None, None, start, (), True
+    if method != "mfm":
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            if method != "output error":
+                fit = _staged(srivc, est_sig, seed, max_iter=max_iter, tol=tol)
+                model, names, cov = fit.model, fit.names, np.asarray(fit.covariance)
+                converged = bool(fit.converged)
+            if method.endswith("output error"):
+                oe = _staged(output_error, est_sig, model if fit is not None else seed)
+                model, names, cov, converged = oe.model, oe.names, np.asarray(oe.covariance), \
+                    oe.converged
+        if not converged:
+            for w in caught:
+                warnings.warn(str(w.message), stacklevel=2)
+    if cov is None:
+        names = free_parameters(start)[0]
+        cov = np.full((len(names), len(names)), np.nan)
+        notes = notes + ("no standard errors: the plain MFM estimate predicted the hold-out "
+                         "data best (SRIVC and output error did not improve it)",)
+    std = np.sqrt(np.abs(np.diagonal(cov)))
+    model = model.labelled(signals.output_name, signals.input_names)
+    if method != "mfm" and signals.offset:
+        notes = notes + ("SRIVC / output error ran on data with the estimation means removed; "
+                         "the offset term is mapped back to the original levels",)
+    return Estimate(model, start, sel.refit, fit, oe, tuple(names), std, cov, converged,
+                    was_unstable, method, selection_text, held, notes)
+
+
+STRUCTURES = 8  # structures whose best setting goes on to SRIVC in the hold-out comparison
+
+
+def _best_per_structure(res: SearchResult, count: int) -> list[int]:
+    """Ranks (in `res`) of the best candidate of each of the first `count` structures."""
+    seen, out = set(), []
+    c = res.columns
+    for i in range(len(res)):
+        j = int(res.rank[i])
+        key = (int(c["n"][j]), tuple(int(v) for v in c["m"][j]))
+        if key not in seen and int(c["status"][j]) == 0:
+            seen.add(key)
+            out.append(i)
+            if len(out) == count:
+                break
+    return out or [0]
+
+
+def _staged(stage, signals: Signals, model: Model, **kw):
+    r"""`stage` (srivc or output_error) from `model` with its delays, on data with the means
+    removed when the model has an offset term: the filters and simulations start from rest
+    and the free parameters are scaled by their magnitude, so a level far from zero (97 degC
+    on the heat exchanger) would swamp them. The offset maps exactly between the two levels:
+    $b_{off}' = b_{off} + \sum_k b_{k0} \bar u_k - a_0 \bar y$. Returns None if the stage
+    raised (e.g. an overflowing simulation)."""
+    signals = _with(signals, model)
+    ybar, ubar = (0.0, np.zeros(signals.n_inputs))
+    if model.has_offset:
+        ybar, ubar = float(np.mean(signals.y)), np.asarray(np.mean(signals.u, axis=0))
+        signals = eqx.tree_at(lambda q: (q.y, q.u), signals,
+                              (signals.y - ybar, signals.u - ubar))
+        model = _shift_offset(model, ybar, ubar, +1.0)
+    try:
+        out = stage(signals, model, **kw)
+    except ValueError:
+        return None
+    if not model.has_offset:
+        return out
+    back = _shift_offset(out.model, ybar, ubar, -1.0)
+    # covariance of (.., b_k0, .., offset): d offset / d a_0 = ybar, d / d b_k0 = -ubar_k
+    J = np.eye(len(out.names))
+    row = out.names.index("offset")
+    for name, val in [("a_0", ybar)] + [(f"b_{k + 1}0", -ubar[k]) for k in range(len(ubar))]:
+        if name in out.names:
+            J[row, out.names.index(name)] = val
+    cov = J @ np.asarray(out.covariance) @ J.T
+    return replace_fields(out, model=back, covariance=cov,
+                          std_errors=np.sqrt(np.abs(np.diagonal(cov))))
+
+
+def _shift_offset(model: Model, ybar: float, ubar, sign: float) -> Model:
+    """The same model with the offset term for data shifted by -(ybar, ubar) (sign +1) or back."""
+    shift = sum(float(bk[0]) * float(ubar[k]) for k, bk in enumerate(model.b)) - \
+        float(model.a[0]) * ybar
+    return eqx.tree_at(lambda q: q.offset, model, model.offset + sign * shift)
+
+
+def _with(signals: Signals, model: Model) -> Signals:
+    return eqx.tree_at(lambda q: q.delays, signals, model.delays)
 
 
 def estimate_from_search(signals: Signals, res: SearchResult, *, polish: bool = False,
@@ -90,15 +278,18 @@ def estimate_from_search(signals: Signals, res: SearchResult, *, polish: bool = 
         warnings.warn(f"estimate(): every candidate is flagged; starting from the best one "
                       f"({describe(int(start.status))})", stacklevel=2)
     seed, was_unstable = stabilised(start)
-    fit = srivc(signals, seed, max_iter=max_iter, tol=tol)
+    fit = _staged(srivc, signals, seed, max_iter=max_iter, tol=tol)
+    if fit is None:
+        raise ValueError("estimate(): SRIVC could not simulate the search's winner on this "
+                         "record; try selection='holdout' or a smaller grid")
     model, names, std = fit.model, fit.names, np.asarray(fit.std_errors)
     cov = np.asarray(fit.covariance)
     converged, method, oe = bool(fit.converged), "srivc", None
     if polish:
-        oe = output_error(signals, model)
+        oe = _staged(output_error, signals, model)
         model, names, std = oe.model, oe.names, np.asarray(oe.std_errors)
         cov = np.asarray(oe.covariance)
         converged, method = oe.converged, "srivc + output error"
     model = model.labelled(signals.output_name, signals.input_names)
     return Estimate(model, start, res, fit, oe, tuple(names), std, cov, converged, was_unstable,
-                    method)
+                    method, f"{res.score.upper()} on the estimation data", {}, ())

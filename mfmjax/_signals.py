@@ -57,6 +57,24 @@ def _refuse_output_as_input(y, u, output_name, names):
             )
 
 
+def offset_needed(y) -> tuple[bool, str]:
+    """The default offset rule: (include the constant input?, the reason in words).
+
+    On when the output sits at an operating point away from zero: |mean y| > 2 std y and the
+    mean of its first samples (up to 10) is farther from zero than half the output's range, so
+    that a record starting at rest at zero (a step or impulse response) keeps the plain model.
+    A traced y (inside jit/vmap) cannot be inspected: the term is left off; pass offset=True."""
+    if not _concrete(y):
+        return False, "offset term off (traced data: pass offset=True to estimate one)"
+    y = np.asarray(y)
+    mean, std, span = float(np.mean(y)), float(np.std(y)), float(np.ptp(y))
+    start = float(np.mean(y[: min(10, y.shape[0])]))
+    if abs(mean) > 2 * std and abs(start) > 0.5 * span:
+        return True, (f"offset term estimated (auto: the output sits at {mean:.4g}, "
+                      f"{abs(mean) / max(std, 1e-300):.3g} standard deviations from zero)")
+    return False, "no offset term (auto: the output is near zero or starts at rest at zero)"
+
+
 class Signals(eqx.Module):
     """Validated container for one experiment (uniform sampling, MISO).
 
@@ -70,6 +88,10 @@ class Signals(eqx.Module):
       output) or `"foh"` (piecewise linear). Default `"foh"`.
     - `delays`: per input transport delay in time units (>= 0, any real value).
     - `offset`: add a constant input (u = 1, m = 0) to the model, for signals with an offset.
+      Default `None` decides from the data (`offset_needed`): on for plant data around an
+      operating point away from zero (the output's mean is more than 2 standard deviations
+      from zero and the record does not start at rest at zero), off for records from rest or
+      around zero; `offset_note` says what was decided and why. Give True/False to choose.
     - `smooth`: per input, use the higher-order (cubic) rule as for the output.
     - `output_rule`: quadrature rule of the output, `"cubic"` (default, O(dt^4)) or `"foh"`
       (piecewise linear, for comparison).
@@ -87,6 +109,7 @@ class Signals(eqx.Module):
     output_rule: str = eqx.field(static=True)
     output_name: str = eqx.field(static=True)
     input_names: tuple[str, ...] = eqx.field(static=True)
+    offset_note: str = eqx.field(static=True)  # how the offset term was chosen ('' if given)
 
     def __init__(
         self,
@@ -98,7 +121,7 @@ class Signals(eqx.Module):
         t0: float = 0.0,
         intersample=None,
         delays=None,
-        offset: bool = False,
+        offset: bool | None = None,
         smooth=None,
         output_rule: str = "cubic",
         output_name: str = "y",
@@ -202,7 +225,11 @@ class Signals(eqx.Module):
             _refuse_output_as_input(np.asarray(y), np.asarray(u), output_name, names)
         self.y, self.u, self.delays = y, u, delays
         self.dt, self.t0 = dt, float(t0)
+        note = ""
+        if offset is None:
+            offset, note = offset_needed(y)
         self.intersample, self.smooth, self.offset = intersample, smooth, bool(offset)
+        self.offset_note = note
         self.output_rule = output_rule
         self.output_name, self.input_names = str(output_name), names
 
@@ -212,6 +239,17 @@ class Signals(eqx.Module):
         K = self.n_inputs
         return replace_fields(self, t0=0.0, output_name="y",
                               input_names=tuple(f"u{k + 1}" for k in range(K)))
+
+    def window(self, t0: float, t1: float) -> Signals:
+        """The samples with t0 <= t <= t1 (rounded to the grid) as their own record; time,
+        rules, delays, offset and names are kept."""
+        _b.window("Signals.window", "window", (t0, t1))
+        T, dt = self.n_samples, self.dt
+        a, b = round((float(t0) - self.t0) / dt), round((float(t1) - self.t0) / dt)
+        if not 0 <= a < b <= T - 1:
+            raise ValueError(f"Signals.window(): ({float(t0):g}, {float(t1):g}) must lie inside "
+                             f"the record [{self.t0:g}, {self.t0 + (T - 1) * dt:g}]")
+        return replace_fields(self, y=self.y[a:b + 1], u=self.u[a:b + 1], t0=self.t0 + a * dt)
 
     # -- derived quantities -------------------------------------------------------------------
     @property

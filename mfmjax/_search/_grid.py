@@ -193,11 +193,12 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     first = int(support_samples(h_max + delay_max, dt))
     p_needed = n_max + 1 + sum(mk + 1 for mk in m_max) + int(signals.offset)
     segments = identification_segments(signals, identify)
-    if min(b - a for a, b in segments) - first < max(MIN_VALID, 2 * p_needed):
+    valid = sum(max(b - a - first, 0) for a, b in segments)  # samples the Gram integral sums
+    if valid < max(MIN_VALID, 2 * p_needed):
         raise ValueError(
             f"search(): h={h_max:g} (+ delays {delay_max:g}) leaves too few valid samples in "
-            f"the {'record' if identify is None else 'identify window'} "
-            f"({(min(b - a for a, b in segments) - 1) * dt:g} time units); use smaller h"
+            f"the {'record' if identify is None else 'identify windows'} ({valid} samples); "
+            "use smaller h"
         )
     v0, v_len, ob = validation_window(signals, validate, observer_window, n_max, "search")
     p = p_needed
