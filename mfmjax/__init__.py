@@ -45,6 +45,9 @@ from ._output_error import OutputErrorFit as OutputErrorFit  # noqa: E402
 from ._output_error import output_error as output_error  # noqa: E402
 from ._persist import load_model as load_model  # noqa: E402
 from ._persist import save_model as save_model  # noqa: E402
+from ._prepare import Trend as Trend  # noqa: E402
+from ._prepare import detrend as detrend  # noqa: E402
+from ._prepare import resample as resample  # noqa: E402
 from ._quadrature import kernel_weights as kernel_weights  # noqa: E402
 from ._refine import Refinement as Refinement  # noqa: E402
 from ._refine import refine as refine  # noqa: E402
@@ -74,5 +77,5 @@ __all__ = [  # the public names (tests/test_fuzz.py covers each one)
     "observe", "online", "output_error", "performance_index", "phi", "phi_integral", "phi_scaled",
     "refine", "save_model", "scores", "search", "simulate", "srivc", "state_space", "to_control",
     "to_scipy", "Comparison", "FrequencyResponse", "Residuals", "StepResponse", "compare",
-    "frequency_response", "residuals", "step_response",
+    "frequency_response", "residuals", "step_response", "Trend", "detrend", "resample",
 ]

@@ -251,6 +251,42 @@ class Signals(eqx.Module):
                              f"the record [{self.t0:g}, {self.t0 + (T - 1) * dt:g}]")
         return replace_fields(self, y=self.y[a:b + 1], u=self.u[a:b + 1], t0=self.t0 + a * dt)
 
+    @staticmethod
+    def concatenate(records: Sequence[Signals]) -> tuple[Signals, list]:
+        r"""Several experiments of one system as one record and its experiment windows.
+
+        The records (same dt, inputs, intersample rules, offset choice and names) are laid end
+        to end in time (each starts one dt after the previous one ends). Pass the windows as
+        `identify=` to `search` or `estimate`: the Gram integral (eq. 9-10) then sums each
+        experiment's valid samples only (a modulating function never straddles two
+        experiments), so the equation error of every experiment is weighted by its duration
+        (equal weight per unit time; scale a record's y and u to weight it otherwise).
+        Simulations (E, fit, observers) must stay inside one window.
+
+        **Returns:** (Signals, [(t0, t1) of each experiment]).
+        """
+        records = list(records)
+        if not records or not all(isinstance(r, Signals) for r in records):
+            raise TypeError("Signals.concatenate(): give a list of Signals (one per experiment)")
+        first = records[0]
+        for i, r in enumerate(records[1:], 1):
+            for attr in ("dt", "intersample", "smooth", "offset", "output_rule", "output_name",
+                         "input_names"):
+                if getattr(r, attr) != getattr(first, attr):
+                    raise ValueError(f"Signals.concatenate(): record {i} has {attr}="
+                                     f"{getattr(r, attr)!r}, record 0 has "
+                                     f"{getattr(first, attr)!r}; experiments must match")
+            if not np.array_equal(np.asarray(r.delays), np.asarray(first.delays)):
+                raise ValueError(f"Signals.concatenate(): record {i} has other delays than "
+                                 "record 0; experiments of one system share their delays")
+        windows, t = [], first.t0
+        for r in records:
+            windows.append((t, t + (r.n_samples - 1) * r.dt))
+            t += r.n_samples * r.dt
+        joined = replace_fields(first, y=jnp.concatenate([r.y for r in records]),
+                                u=jnp.concatenate([r.u for r in records]))
+        return joined, windows
+
     # -- derived quantities -------------------------------------------------------------------
     @property
     def n_samples(self) -> int:
@@ -280,9 +316,14 @@ class Signals(eqx.Module):
         time: str | None = None,
         dt: float | None = None,
         source: str = "data",
+        resample: float | None = None,
         **kwargs,
     ) -> Signals:
-        """Build from a mapping of column name -> 1-D array (used by the CSV and pandas paths)."""
+        """Build from a mapping of column name -> 1-D array (used by the CSV and pandas paths).
+
+        A non-uniform time column is refused unless `resample=dt` is given: the columns are then
+        put on the uniform grid of step dt from the first time (`mfmjax.resample`: inputs by
+        their `intersample` rule, the output by linear interpolation)."""
         inputs = list(inputs)
         available = list(columns)
         for role, name in [("output", output)] + [("inputs", c) for c in inputs] + (
@@ -298,15 +339,36 @@ class Signals(eqx.Module):
         for name in [output, *inputs] + ([time] if time else []):
             arrays[name] = np.asarray(columns[name], dtype=np.float64)
         u = np.stack([arrays[c] for c in inputs], axis=1) if inputs else None
-        return cls(
-            arrays[output],
-            u,
-            dt=dt,
-            t=arrays[time] if time else None,
-            output_name=output,
-            input_names=inputs,
-            **kwargs,
-        )
+        if resample is not None:
+            from ._prepare import resample_arrays
+
+            if time is None or dt is not None:
+                raise ValueError(f"{source}: resample= needs a time column (time=...) and no dt; "
+                                 "it reads the record at its sample times")
+            try:
+                t0, y_r, u_r, rules, _ = resample_arrays(
+                    "Signals.from_columns", arrays[time], arrays[output],
+                    {c: (arrays[time], arrays[c]) for c in inputs}, dt=resample,
+                    intersample=kwargs.pop("intersample", "foh"))
+            except (ValueError, TypeError) as err:
+                raise type(err)(f"{source}: {err}") from None
+            return cls(y_r, u_r, dt=float(resample), t0=t0, intersample=rules,
+                       output_name=output, input_names=inputs, **kwargs)
+        try:
+            return cls(
+                arrays[output],
+                u,
+                dt=dt,
+                t=arrays[time] if time else None,
+                output_name=output,
+                input_names=inputs,
+                **kwargs,
+            )
+        except ValueError as err:
+            if "not uniformly sampled" not in str(err):
+                raise
+            raise ValueError(f"{err} (from_columns/from_csv: pass resample=DT for a grid of "
+                             "step DT; CLI: --resample DT)") from None
 
     @classmethod
     def from_csv(cls, path, *, output: str, inputs: Sequence[str] = (), time=None, dt=None,

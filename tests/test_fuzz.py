@@ -464,6 +464,37 @@ def test_fuzz_fit_percent(y, y_sim):
         assert math.isfinite(v)  # finite inputs, y not constant: finite (no overflow)
 
 
+@fuzzes("detrend", "Trend")
+@FEW
+@given(kind=st.one_of(st.sampled_from(["linear", "constant"]), junk),
+       offset=st.one_of(st.booleans(), junk))
+def test_fuzz_detrend(kind, offset):
+    ok, res = outcome(lambda: mfmjax.detrend(record(), kind, offset=offset), ["detrend()"])
+    if ok:
+        sig, trend = res
+        assert isinstance(trend, mfmjax.Trend) and sig.offset == offset
+        honest((sig, trend))
+        honest(trend.apply(record().window(1.0, 5.0)))
+        assert np.all(np.isfinite(np.asarray(trend.restore(sig.t, sig.y))))
+
+
+@fuzzes("resample")
+@FAST
+@given(t=arrays(np.float64, 12, elements=st.one_of(st.floats(0.0, 5.0), any_float)),
+       dt=st.one_of(st.floats(0.01, 2.0), junk),
+       rule=st.one_of(st.sampled_from(["zoh", "foh"]), junk),
+       output_rule=st.one_of(st.sampled_from(["linear", "cubic"]), junk))
+def test_fuzz_resample(t, dt, rule, output_rule):
+    y, u = np.sin(np.arange(12.0)), np.cos(np.arange(12.0))
+    for t_ in (t, np.sort(t)):
+        ok, sig = outcome(lambda t_=t_: mfmjax.resample(t_, y, u, dt=dt, intersample=rule,
+                                                        output_rule=output_rule),
+                          ["resample()", "Signals()"])
+        if ok:
+            honest(sig)
+            assert sig.dt == float(dt) and sig.n_samples >= 2
+
+
 # -- status, files, caches, data sets -------------------------------------------------------------
 
 
