@@ -94,6 +94,13 @@ def _add_data_args(p: argparse.ArgumentParser):
                    "(search: one grid per input separated by ';')")
     p.add_argument("--offset", action="store_true", help="add a constant offset term")
     p.add_argument("--names", help="column names for a file without header (comma separated)")
+    p.add_argument("--resample", type=_number("resample", lo=0, lo_open=True), metavar="DT",
+                   help="read a non-uniform --time column onto a uniform grid of step DT (inputs "
+                   "by --intersample, the output linearly; mfmjax.resample)")
+    p.add_argument("--detrend", choices=("linear", "constant"),
+                   help="remove the least-squares line (or the mean) of the output and of each "
+                   "input over this file's record; the model is then for deviations from them "
+                   "and has no offset term unless --offset (mfmjax.detrend)")
 
 
 def _columns(args) -> list[str]:
@@ -123,7 +130,12 @@ def _load_signals(args):
         kwargs["delays"] = _floats(args.delays, "delays")
     if args.time is None and args.dt is None:
         raise _UserError("give --time COLUMN or --dt SECONDS")
-    return Signals.from_csv(
+    if getattr(args, "resample", None) is not None:
+        if args.time is None:
+            raise _UserError(f"--resample {args.resample:g}: needs --time COLUMN (the sample "
+                             "times to read the record at), not --dt")
+        kwargs["resample"] = args.resample
+    sig = Signals.from_csv(
         args.file,
         output=args.output,
         inputs=inputs,
@@ -133,6 +145,18 @@ def _load_signals(args):
         names=[c.strip() for c in args.names.split(",")] if args.names else None,
         **kwargs,
     )
+    if getattr(args, "detrend", None):
+        from ._prepare import detrend
+
+        sig, trend = detrend(sig, args.detrend, offset=bool(args.offset))
+        lines = [(sig.output_name, trend.y_level, trend.y_slope)] + list(
+            zip(sig.input_names, trend.u_level, trend.u_slope))
+        text = ", ".join(f"{n} {float(c):.6g}" + (f"{float(s):+.6g}*(t-{trend.t0:g})"
+                                                    if trend.kind == "linear" else "")
+                         for n, c, s in lines)
+        print(f"note: --detrend {args.detrend}: removed {text}; the model is for deviations "
+              "from these lines", file=sys.stderr)
+    return sig
 
 
 def _cmd_identify(args):
