@@ -299,7 +299,7 @@ def resample_arrays(fn: str, t, y, u, *, dt, intersample="foh", output_rule: str
         median = float(np.median(np.diff(t_k)))
         if dt > _COARSE * median:
             warnings.warn(
-                f"{fn}(): dt={dt:g} is coarser than {name!r}'s median step {median:g}; its "
+                f"{fn}(): dt={dt:g} is coarser than the median step of {name!r} ({median:g}); its "
                 "faster content aliases without a low-pass filter: filter first or choose a "
                 "smaller dt", stacklevel=3)
             break
