@@ -261,6 +261,11 @@ def test_from_csv_resample(irregular_csv):
         Signals.from_csv(path, output="temp", inputs=["heat"], dt=0.05, resample=0.05)
     with pytest.raises(ValueError, match=r"irregular.csv: Signals.from_columns\(\): dt must"):
         Signals.from_csv(path, output="temp", inputs=["heat"], time="time", resample=-0.1)
+    pd = pytest.importorskip("pandas")
+    frame = Signals.from_dataframe(pd.DataFrame(raw), output="temp", inputs=["heat", "valve"],
+                                   time="time", resample=0.05, intersample=["foh", "zoh"])
+    np.testing.assert_array_equal(np.asarray(frame.u), np.asarray(sig.u))
+    np.testing.assert_array_equal(np.asarray(frame.y), np.asarray(sig.y))
 
 
 CLI = ["--output", "temp", "--inputs", "heat,valve", "--time", "time", "--intersample",
