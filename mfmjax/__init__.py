@@ -22,6 +22,7 @@ from ._cache import enable_compile_cache as enable_compile_cache  # noqa: E402
 from ._cramer_rao import cramer_rao as cramer_rao  # noqa: E402
 from ._estimate import Estimate as Estimate  # noqa: E402
 from ._estimate import estimate as estimate  # noqa: E402
+from ._estimate import estimate_outputs as estimate_outputs  # noqa: E402
 from ._gram import gram as gram  # noqa: E402
 from ._gram import modulated_signals as modulated_signals  # noqa: E402
 from ._identify import identify as identify  # noqa: E402
@@ -72,7 +73,7 @@ __all__ = [  # the public names (tests/test_fuzz.py covers each one)
     "Model", "ModulatingFunction", "Observation", "OnlineConfig", "OnlineIdentifier",
     "OnlineOutputs", "OnlineState", "OutputErrorFit", "Refinement", "SearchResult", "Signals",
     "StateSpace", "Status", "Structure", "closed_form", "constrained_solve", "cramer_rao",
-    "datasets", "enable_compile_cache", "Estimate", "estimate", "final_state", "fit_percent", "gram", "identify",
+    "datasets", "enable_compile_cache", "Estimate", "estimate", "estimate_outputs", "final_state", "fit_percent", "gram", "identify",
     "initial_state", "kernel_weights", "load_model", "modulated_signals", "moving_final_states",
     "observe", "online", "output_error", "performance_index", "phi", "phi_integral", "phi_scaled",
     "refine", "save_model", "scores", "search", "simulate", "srivc", "state_space", "to_control",

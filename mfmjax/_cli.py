@@ -92,7 +92,11 @@ def _add_data_args(p: argparse.ArgumentParser):
     p.add_argument("--intersample", help="per input: zoh or foh (default foh)")
     p.add_argument("--delays", help="per input transport delay in time units "
                    "(search: one grid per input separated by ';')")
-    p.add_argument("--offset", action="store_true", help="add a constant offset term")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--offset", action="store_true", default=None, help="add a constant offset "
+                   "term (default: decided from the data, see Signals(offset=None))")
+    g.add_argument("--no-offset", dest="offset", action="store_false",
+                   help="no offset term, whatever the data")
     p.add_argument("--names", help="column names for a file without header (comma separated)")
     p.add_argument("--resample", type=_number("resample", lo=0, lo_open=True), metavar="DT",
                    help="read a non-uniform --time column onto a uniform grid of step DT (inputs "
@@ -101,6 +105,56 @@ def _add_data_args(p: argparse.ArgumentParser):
                    help="remove the least-squares line (or the mean) of the output and of each "
                    "input over this file's record; the model is then for deviations from them "
                    "and has no offset term unless --offset (mfmjax.detrend)")
+
+
+def _add_window_args(p: argparse.ArgumentParser):
+    p.add_argument("--identify-window", help="T0,T1: identify on these samples only "
+                   "(default: the whole record)")
+    p.add_argument("--validate-window", help="T0,T1: simulate the model there (state from the "
+                   "observer over its first 20 %%) and report fit %% (data not fitted on)")
+
+
+def _identify_part(args, sig):
+    """The identification window as (t0, t1), or None for the whole record."""
+    if not args.identify_window:
+        return None
+    w = _window(args.identify_window, "identify-window")
+    end = sig.t0 + (sig.n_samples - 1) * sig.dt
+    if w[0] < sig.t0 - 0.5 * sig.dt or w[1] > end + 0.5 * sig.dt:
+        raise _UserError(f"--identify-window {w[0]:g},{w[1]:g} must lie inside the record "
+                         f"[{sig.t0:g}, {end:g}]")
+    return w
+
+
+def _validation_report(args, sig, model) -> dict | None:
+    """fit % and E of `model` on --validate-window, the state from the initial-state observer
+    over the window's first 20 % (eq. 14, 17)."""
+    if not args.validate_window:
+        return None
+    import mfmjax
+
+    w = _window(args.validate_window, "validate-window")
+    end = sig.t0 + (sig.n_samples - 1) * sig.dt
+    if w[0] < sig.t0 - 0.5 * sig.dt or w[1] > end + 0.5 * sig.dt:
+        raise _UserError(f"--validate-window {w[0]:g},{w[1]:g} must lie inside the record "
+                         f"[{sig.t0:g}, {end:g}]")
+    ident = _identify_part(args, sig)
+    overlap = ident is None or (w[0] < ident[1] and ident[0] < w[1])
+    obs = mfmjax.observe(model, sig, w, observer_window=0.2 * (w[1] - w[0]))
+    a = round((w[0] - sig.t0) / sig.dt)
+    y = np.asarray(sig.y)[a: a + obs.y_sim.shape[0]]
+    return {"window": list(w), "fit": float(mfmjax.fit_percent(y, obs.y_sim)),
+            "E": float(obs.E), "observer_window": 0.2 * (w[1] - w[0]),
+            "overlaps_identification": bool(overlap)}
+
+
+def _print_validation(v: dict | None) -> None:
+    if v is not None:
+        print(f"validation on [{v['window'][0]:g}, {v['window'][1]:g}]: fit {v['fit']:.2f} %  "
+              f"E {v['E']:.4e}  (state from the observer over the first "
+              f"{v['observer_window']:g}" + (
+                  "; WARNING: the window overlaps the identification data)"
+                  if v["overlaps_identification"] else ")"))
 
 
 def _columns(args) -> list[str]:
@@ -162,7 +216,9 @@ def _load_signals(args):
 def _cmd_identify(args):
     import mfmjax
 
-    sig = _load_signals(args)
+    full = _load_signals(args)
+    ident = _identify_part(args, full)
+    sig = full if ident is None else full.window(*ident)
     m = _ints(args.m, "m") if args.m else [0] * sig.n_inputs
     structure = mfmjax.Structure(args.n, m).for_inputs(sig.n_inputs)
     mf = mfmjax.ModulatingFunction(args.N, args.M, args.h)
@@ -170,6 +226,7 @@ def _cmd_identify(args):
         warnings.simplefilter("ignore")
         model = mfmjax.identify(sig, structure, mf)
     report = _refine_report(sig, model, bool(args.delays)) if args.refine else None
+    validation = _validation_report(args, full, report["model"] if report else model)
     cov = report.pop("covariance", None) if report else None  # saved for report's bands
     if args.save:
         from ._analysis import usable_covariance
@@ -181,6 +238,8 @@ def _cmd_identify(args):
         out = model.to_dict()
         if report:
             out["refined"] = {k: v for k, v in report.items() if k != "model"}
+        if validation:
+            out["validation"] = validation
         _print_json(out)
     else:
         print(f"{args.file}: {sig.n_samples} samples, dt={sig.dt:g}, K={sig.n_inputs}")
@@ -189,6 +248,7 @@ def _cmd_identify(args):
             print("\n" + report["summary"])
         elif report:
             _print_report(report)
+        _print_validation(validation)
 
 
 def _refine_report(sig, model, vary_delays: bool) -> dict:
@@ -540,12 +600,13 @@ def _cmd_search(args):
     if args.estimate and args.refine:
         raise _UserError("--estimate and --refine are two ways to improve the winner; give one")
     report = None
+    ident = _identify_part(args, sig)
     if args.estimate:  # mfmjax.estimate's path: its search table, ranked on held-back data
         kwargs.pop("score")
         kwargs.pop("validate", None)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            est = mfmjax.estimate(sig, **kwargs)
+            est = mfmjax.estimate(sig, identify=ident, **kwargs)
         result = est.search
         report = {"model": est.model, "method": est.method, "converged": est.converged,
                   "srivc_status": est.srivc.describe() if est.srivc is not None else "not run",
@@ -554,7 +615,7 @@ def _cmd_search(args):
                                  zip(est.names, _free_values(est.model), est.std_errors)},
                   "covariance": est.covariance}
     else:
-        result = mfmjax.search(sig, progress=_Progress("search"), **kwargs)
+        result = mfmjax.search(sig, progress=_Progress("search"), identify=ident, **kwargs)
     if args.refine:
         best = result.best()
         sig_best = _with_delays(sig, best.delays)
@@ -566,8 +627,11 @@ def _cmd_search(args):
 
         saved = report["model"] if report else result.best()
         save_model(saved, args.save, covariance=usable_covariance(saved, cov))
+    validation = _validation_report(args, sig, report["model"] if report else result.best())
     if args.json:
         out = result.to_dict(top=args.top)
+        if validation:
+            out["validation"] = validation
         if args.estimate:
             out["score"] = "holdout E"  # the table of estimate: ranked on held-back data
         if report:
@@ -583,6 +647,7 @@ def _cmd_search(args):
             print("\n" + report["summary"])
         elif report:
             _print_report(report)
+        _print_validation(validation)
 
 
 def _free_values(model):
@@ -703,6 +768,7 @@ def main(argv=None) -> int:
     p.add_argument("--save", help="write the model to this JSON file")
     p.add_argument("--refine", action="store_true", help="refine h, N, M (and delays) by "
                    "gradient, then the parameters by output error, with standard errors")
+    _add_window_args(p)
     p.set_defaults(func=_cmd_identify)
     p = sub.add_parser("search", help="batched search over orders and MF settings")
     _add_data_args(p)
@@ -720,8 +786,9 @@ def main(argv=None) -> int:
     p.add_argument("--save", help="write the best model to this JSON file")
     p.add_argument("--refine", action="store_true", help="refine the best candidate's settings "
                    "by gradient, then its parameters by output error")
-    p.add_argument("--estimate", action="store_true", help="noisy data: SRIVC from the best "
-                   "candidate (mfmjax.estimate's path), parameters with standard errors")
+    p.add_argument("--estimate", action="store_true", help="mfmjax.estimate's path: structure "
+                   "chosen on held-back data, SRIVC (and output error), standard errors")
+    _add_window_args(p)
     p.set_defaults(func=_cmd_search)
     p = sub.add_parser("validate", help="E, fit %% and observed x0 of a saved model on a record")
     _add_data_args(p)

@@ -293,3 +293,27 @@ def estimate_from_search(signals: Signals, res: SearchResult, *, polish: bool = 
     model = model.labelled(signals.output_name, signals.input_names)
     return Estimate(model, start, res, fit, oe, tuple(names), std, cov, converged, was_unstable,
                     method, f"{res.score.upper()} on the estimation data", {}, ())
+
+
+def estimate_outputs(records, **kwargs) -> tuple[Estimate, ...]:
+    """Multi-output data: one MISO model (eq. 1) per output, each by `estimate`.
+
+    `records`: one `Signals` per output, with the same inputs, sampling and rules (e.g.
+    `Signals.from_columns(cols, output=name, ...)` for each output column). Each output gets
+    its own denominator A(s): outputs of a plant measured at different places (the glass
+    furnace's six temperatures) have different dominant dynamics, and a common denominator
+    would force one set of poles on all of them (a state-space method such as N4SID shares
+    them). The records have equal shapes, so all outputs share the compiled programs.
+    `kwargs` are those of `estimate`. **Returns:** one `Estimate` per record, in order.
+    """
+    records = list(records) if not isinstance(records, Signals) else [records]
+    if not records or not all(isinstance(r, Signals) for r in records):
+        raise TypeError("estimate_outputs(): records must be a list of Signals, one per output")
+    first = records[0]
+    for i, r in enumerate(records[1:], 1):
+        same = (r.dt == first.dt and r.n_samples == first.n_samples
+                and r.u.shape == first.u.shape and bool(np.array_equal(r.u, first.u)))
+        if not same:
+            raise ValueError(f"estimate_outputs(): record {i} does not share record 0's inputs "
+                             "and sampling; give one Signals per output of one experiment")
+    return tuple(estimate(r, **kwargs) for r in records)

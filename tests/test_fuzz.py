@@ -371,6 +371,22 @@ def test_fuzz_estimate(h, polish, max_iter):
             assert np.all(np.isfinite(est.std_errors))
 
 
+@fuzzes("estimate_outputs")
+@FEW
+@given(records=st.one_of(st.just("two"), st.just("mismatch"), junk))
+@example(records="two")
+def test_fuzz_estimate_outputs(records):
+    sig = record()
+    arg = {"two": [sig, sig], "mismatch": [sig, Signals(sig.y[:-5], sig.u[:-5], dt=DT)]}.get(
+        records, records) if isinstance(records, str) else records
+    ok, out = outcome(lambda: mfmjax.estimate_outputs(arg, h=2.0, n=(1, 2), N=3, M=3),
+                      ["estimate_outputs()", "estimate()", "search()"])
+    if ok:
+        assert len(out) == 2 and all(isinstance(e, mfmjax.Estimate) for e in out)
+        for e in out:
+            honest_model(e.model)
+
+
 # -- simulation and observers ---------------------------------------------------------------------
 
 

@@ -1,0 +1,165 @@
+"""Issue 15: identification windows, several experiments, hold-out model selection, the offset
+default, several outputs, and the CLI's identify/validate windows."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import reference as ref
+
+import mfmjax
+from mfmjax import Model, Signals
+from mfmjax._selection import holdout_search
+from mfmjax.datasets import daisy, simulated_experiment
+
+TRUE = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0, 0.3]], intersample=["foh"])  # zero at -3.3
+DT, T = 0.05, 900
+SETTING = dict(n=2, m=[[1]], N=4, M=4, h=3.0)
+
+
+def _record(seed, noise=0.0, n_samples=T):
+    return simulated_experiment(TRUE, dt=DT, n_samples=n_samples, seed=seed, noise_std=noise)
+
+
+def _ab(model):
+    return np.concatenate([np.asarray(model.a), np.asarray(model.b[0])])
+
+
+def test_identify_windows_sum_the_windows_grams_numpy_twin():
+    """search(identify=[w1, w2]) solves eq. (12) with G = sum over the windows of the Gregory
+    integral of c c^T over each window's valid samples (tests/reference.py twin). Noisy data,
+    so leaving samples out changes the estimate. Tolerance: the equilibrated G has cond ~1e6,
+    so the two float64 solves agree to ~cond * eps = 1e-10; 1e-8 relative leaves 100x."""
+    sig = _record(3, noise=0.02)
+    y, u = np.asarray(sig.y), np.asarray(sig.u)
+    wins = [(0.0, 300 * DT), (500 * DT, (T - 1) * DT)]
+    res = mfmjax.search(sig, identify=wins, **SETTING)
+    C, first = ref.columns(y, u, DT, 2, [1], 4, 4, 3.0, ["foh"], [0.0])
+    q = np.zeros(T)
+    for a, b in [(0, 301), (500, T)]:
+        q[:b] += ref.gregory(b, a + first, DT) * (np.arange(b) >= a + first)
+    G = C.T @ (q[:, None] * C)
+    theta = ref.closed_form(G, np.ones(G.shape[0]))
+    want = theta / theta[2]
+    np.testing.assert_allclose(_ab(res.best()), want, rtol=1e-8)
+    whole = mfmjax.search(sig, **SETTING).best()
+    assert np.max(np.abs(_ab(whole) - want)) > 1e-6  # the windows did change the estimate
+
+
+def test_concatenated_experiments_are_identified_exactly():
+    """Two noise-free experiments laid end to end: the Gram of the two windows gives the true
+    model (no modulating function straddles the junction); the whole record, whose junction
+    breaks the ODE, does not."""
+    joined, wins = Signals.concatenate([_record(1), _record(2, n_samples=600)])
+    assert joined.n_samples == T + 600 and wins[1][0] == pytest.approx(T * DT)
+    got = _ab(mfmjax.search(joined, identify=wins, **SETTING).best())
+    # each experiment alone is off by the O(dt^4) quadrature error, 3e-5 relative at dt = 0.05,
+    # h = 3 (measured); their summed Gram is no worse: 2e-4 leaves a margin of about 4
+    alone = _ab(mfmjax.search(joined.window(*wins[0]), **SETTING).best())
+    assert np.max(np.abs(alone / _ab(TRUE) - 1)) < 1e-4
+    np.testing.assert_allclose(got, _ab(TRUE), rtol=2e-4)
+    across = _ab(mfmjax.search(joined, **SETTING).best())
+    assert np.max(np.abs(across - _ab(TRUE))) > 1e-3
+    with pytest.raises(ValueError, match=r"concatenate\(\): record 1 has dt"):
+        Signals.concatenate([_record(1), simulated_experiment(TRUE, dt=0.1, n_samples=300)])
+
+
+def test_holdout_search_scores_on_samples_it_did_not_fit():
+    """The candidates of `fitted` do not depend on the hold-out samples (changing them leaves
+    every theta unchanged) while their E is the observer-started simulation error there;
+    `refit` identifies the same candidates on all estimation data."""
+    sig = _record(4, noise=0.02)
+    grid = dict(n=(1, 2), N=(3, 4), M=(3, 4), h=(2.0, 3.0))
+    sel = holdout_search(sig, **grid)
+    hold = sel.holdout
+    k0 = round(hold[0] / DT)
+    y2 = np.asarray(sig.y).copy()
+    y2[k0:] += 0.3 * np.sin(np.arange(T - k0))
+    sel2 = holdout_search(Signals(y2, sig.u, dt=DT, intersample=sig.intersample), **grid)
+    # equal up to the rounding the FFT convolution spreads over every sample (eps log2(nfft)
+    # of the largest term, ~5e-14 relative measured); a leak of the 0.3-amplitude change
+    # into the Gram would move theta by ~1e-2
+    np.testing.assert_allclose(sel.fitted.columns["theta"], sel2.fitted.columns["theta"],
+                               rtol=1e-10, atol=1e-12)
+    assert np.all(np.abs(sel.fitted.columns["E"] / sel2.fitted.columns["E"] - 1) > 1e-3)
+    best = sel.fitted.best(0)
+    obs = mfmjax.observe(best, sig, hold, observer_window=0.2 * (hold[1] - hold[0]))
+    np.testing.assert_allclose(float(sel.fitted.row(0)["E"]), float(obs.E), rtol=1e-9)
+    full = mfmjax.search(sig, n=best.n, m=[[best.m[0]]], N=best.mf.N, M=best.mf.M,
+                         h=float(best.mf.h)).best()
+    np.testing.assert_allclose(_ab(sel.refit.best(0)), _ab(full), rtol=1e-10)
+
+
+def test_offset_default_handles_plant_data():
+    """Heat exchanger (output about 97 degC): the default Signals estimates the offset and
+    says so, and its search winner is the one with offset=True (never worse); a record from
+    rest at zero keeps the plain model."""
+    he = daisy("heat_exchanger")
+    y, u = np.asarray(he.y)[:1500], np.asarray(he.u)[:1500]
+    auto = Signals(y, u, dt=1.0, intersample=he.intersample)
+    assert auto.offset and "offset term estimated" in auto.offset_note
+    grid = dict(n=(1, 2), N=3, M=3, h=(40.0, 80.0), score="bic")
+    got = mfmjax.search(auto, **grid).row(0)
+    forced = mfmjax.search(Signals(y, u, dt=1.0, intersample=he.intersample, offset=True),
+                           **grid).row(0)
+    without = mfmjax.search(Signals(y, u, dt=1.0, intersample=he.intersample, offset=False),
+                            **grid).row(0)
+    assert got["fit"] == forced["fit"] and got["fit"] > without["fit"] + 10
+    rest = _record(5)
+    assert not rest.offset and "no offset term" in rest.offset_note
+    assert Signals(y, u, dt=1.0, offset=False).offset_note == ""  # the user chose
+
+
+def test_estimate_selects_on_held_back_data_and_reports_it():
+    sig = _record(6, noise=0.05)
+    est = mfmjax.estimate(sig, h=(2.0, 3.0), n=(1, 2, 3), N=(3, 4), M=(3, 4))
+    assert est.model.n == 2 and est.method in ("srivc", "srivc + output error")
+    assert "hold-out E on the last 33%" in est.selection and "BIC" in est.selection
+    assert est.holdout and all(math.isfinite(v) for v in est.holdout.values())
+    assert "hold-out fit %" in est.summary()
+    with pytest.raises(ValueError, match=r"estimate\(\): selection must be one of"):
+        mfmjax.estimate(sig, h=2.0, selection="aic")
+    with pytest.raises(ValueError, match=r"estimate\(\): holdout must be a share"):
+        mfmjax.estimate(sig, h=2.0, holdout=0.9)
+
+
+def test_estimate_outputs_one_model_per_output():
+    """Two outputs of one experiment, from two different plants driven by the same input: one
+    MISO estimate each, each close to its own plant (noise 1e-3: MFM is exact to O(dt^4))."""
+    other = Model.from_coefficients([1.0, 1.0], [[2.0]], intersample=["foh"])
+    s1 = _record(7, noise=1e-3)
+    u = np.asarray(s1.u)
+    y2 = np.asarray(mfmjax.simulate(other, u, dt=DT))
+    y2 = y2 + 1e-3 * np.random.default_rng(1).standard_normal(T)
+    s2 = Signals(y2, u, dt=DT, intersample=["foh"], output_name="y2")
+    e1, e2 = mfmjax.estimate_outputs([s1, s2], h=(2.0, 3.0), n=(1, 2), N=(3, 4), M=(3, 4))
+    assert (e1.model.n, e2.model.n) == (2, 1) and e2.model.output_name == "y2"
+    np.testing.assert_allclose(np.asarray(e2.model.a), [1.0, 1.0], rtol=1e-2)
+    with pytest.raises(ValueError, match=r"estimate_outputs\(\): record 1 does not share"):
+        mfmjax.estimate_outputs([s1, Signals(y2[:-5], u[:-5], dt=DT)], h=2.0)
+
+
+def test_cli_identify_and_validate_windows(tmp_path, capsys):
+    from mfmjax._cli import main
+
+    sig = _record(8, noise=0.01)
+    path = tmp_path / "r.csv"
+    np.savetxt(path, np.column_stack([np.asarray(sig.y), np.asarray(sig.u)[:, 0]]),
+               delimiter=",", header="y,u", comments="")
+    base = ["identify", str(path), "--output", "y", "--inputs", "u", "--dt", str(DT),
+            "--n", "2", "--m", "1", "--N", "4", "--M", "4", "--h", "3"]
+    assert main(base + ["--identify-window", "0,30", "--validate-window", "30,44.9",
+                        "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    model = mfmjax.identify(sig.window(0.0, 30.0), mfmjax.Structure(2, [1]),
+                            mfmjax.ModulatingFunction(4, 4, 3.0))
+    obs = mfmjax.observe(model, sig, (30.0, 44.9), observer_window=0.2 * 14.9)
+    k0 = round(30.0 / DT)
+    want = float(mfmjax.fit_percent(np.asarray(sig.y)[k0:k0 + obs.y_sim.shape[0]], obs.y_sim))
+    assert out["validation"]["fit"] == pytest.approx(want, rel=1e-12)
+    assert out["validation"]["overlaps_identification"] is False
+    assert main(base + ["--validate-window", "30,44.9"]) == 0
+    assert "WARNING: the window overlaps" in capsys.readouterr().out
+    assert main(base + ["--identify-window", "0,99"]) == 2
+    assert "--identify-window 0,99 must lie inside" in capsys.readouterr().err
