@@ -40,6 +40,7 @@ def run(mode: str, seeds, **kw) -> dict:
         mse, n_models, lat, delays = [], [], [], []
         for seed in seeds:
             r = run_experiment(ex, seed=seed, mode=mode, **kw)
+            print(f"  {mode} {kw} experiment {ex} seed {seed}: MSE {r['ident'].mse():.4f}", flush=True)
             ident = r["ident"]
             mse.append(ident.mse())
             n_models.append(len(ident.models))

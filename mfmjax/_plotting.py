@@ -55,8 +55,8 @@ def plot_online(series: dict, models: list[dict], path, *, title: str = "", ylab
         ops.setdefault(rec["operating_point_time"], rec["operating_point"])
     for k, (time, label) in enumerate(sorted(ops.items())):
         ax.axvline(time, color="k", ls=":", lw=1.0, label="operating point" if k == 0 else None)
-        ax.text(time, 0.03, f" {label}", transform=ax.get_xaxis_transform(), fontsize=8,
-                ha="left", va="bottom")
+        ax.text(time, 0.90, f" {label}", transform=ax.get_xaxis_transform(), fontsize=8,
+                ha="left", va="top", fontweight="bold")
     ax.plot(t, y, lw=1.1, color="#1f3b73", label="measured")
     if "model_number" in series and len(t):
         idx, yp = broken_at_switches(y_pred, series["model_number"])
@@ -69,7 +69,7 @@ def plot_online(series: dict, models: list[dict], path, *, title: str = "", ylab
     if title:
         ax.set_title(title, fontsize=10)
     ax.set_xlim(t0, t_end or 1.0)
-    ax.legend(loc="lower right", fontsize=7, ncol=3)
+    ax.legend(loc="lower left", fontsize=7, ncol=3, framealpha=0.9)
     fig.subplots_adjust(left=LEFT, right=RIGHT, bottom=0.13, top=0.91)
     fig.savefig(path)
     plt.close(fig)
