@@ -59,8 +59,8 @@ from ._signals import INTERSAMPLE, Signals
 from ._status import Status
 
 FORMAT, VERSION = "mfmjax-online", 1
-IMPROVEMENTS = ("window", "delay", "rank", "damping", "hold", "steady", "alarm")
-ALARM = 100.0  # improved "alarm": re-identify when a prediction's MSE > 100 output noise variances  # mode="improved", in this order
+IMPROVEMENTS = ("window", "delay", "rank", "damping", "hold", "steady", "alarm")  # in order
+ALARM = 100.0  # improved "alarm": re-identify when a prediction's MSE > 100 noise variances
 NOISE_FACTOR = 4.0  # improved steady test: the variance threshold is at least 4 noise variances
 HYSTERESIS = 2.0  # improved onset: the interval before a steady one exceeded 2x its threshold
 TOP_RANK = 16  # candidates (best E on the fit window) ranked on the longer window
