@@ -412,3 +412,19 @@ def test_paper_mode_forehearth_unchanged(ex):
     # the same floating-point program: equal up to summation order (1e-9 relative)
     assert ident.mse() == pytest.approx(mse, rel=1e-9)
     assert len(ident.models) == n_models
+
+
+def test_improved_checkpoint_resume_equals_uninterrupted(tmp_path):
+    t, y, u, _ = switching_experiment(n_intervals=26)
+    cfg = _config(mode="improved")
+    full = _run(t, y, u, cfg, chunk=1000)
+    cut = 18 * S + 77  # after the first model, inside the re-identification period
+    part = _run(t[:cut], y[:cut], u[:cut], cfg, chunk=1000)
+    part.save(tmp_path / "state.npz")
+    resumed = OnlineIdentifier.load(tmp_path / "state.npz")
+    assert resumed.state.config == cfg  # mode, improvements and their settings restored
+    for c0 in range(cut, len(t), 1000):
+        resumed.update(t[c0 : c0 + 1000], y[c0 : c0 + 1000], u[c0 : c0 + 1000])
+    joined = np.concatenate([part.series()["y_pred"], resumed.series()["y_pred"]])
+    np.testing.assert_array_equal(joined, full.series()["y_pred"])
+    assert resumed.models == full.models
