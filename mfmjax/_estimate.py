@@ -70,17 +70,19 @@ POLISH_GAIN = 0.05  # a stage must lower the hold-out E by 5 % to replace a more
 
 def estimate(
     signals: Signals, *, h, n=(1, 2, 3), N=(3, 4, 5), M=(3, 4, 5), m=None, delays=None,
-    selection: str = "holdout", holdout: float = 1 / 3, identify=None, score: str = "bic",
+    selection: str = "holdout", holdout: float = 1 / 3, folds: int = 2, identify=None,
+    score: str = "bic",
     validate=None, polish: bool | None = None, max_iter: int = 30, tol: float = 1e-8,
 ) -> Estimate:
     r"""Identification in one call: `search` -> `srivc` -> (`output_error`), every choice made
     on data the candidate was not fitted on.
 
     - `selection="holdout"` (default): the last `holdout` share (1/3) of the estimation data
-      (`identify`: a window or a list of windows, default the record) is left out of the Gram;
-      every candidate of the grid is scored by its simulation error E (eq. 17) there, the
-      state from the initial-state observer over its first 20 %; the winner is re-identified
-      on all estimation data. `selection="bic"`: BIC ($N \ln(E/T) + k \ln N$, `score` and
+      (`identify`: a window or a list of windows, default the record) is left out of the Gram,
+      and with `folds=2` (default, one estimation window) the first share too, in turn; every
+      candidate of the grid is scored by its mean simulation error E (eq. 17) on the blocks
+      it was not fitted on, the state from the initial-state observer over each block's first
+      20 %; the winner is re-identified on all estimation data. `selection="bic"`: BIC ($N \ln(E/T) + k \ln N$, `score` and
       `validate` as in `search`) on the estimation data, the previous default.
     - Stages: the winner (stabilised: right-half-plane poles mirrored) starts SRIVC (exact
       prefilters, instruments from the noise-free auxiliary model), which removes the
@@ -113,19 +115,17 @@ def estimate(
         out = estimate_from_search(signals, res, polish=bool(polish), max_iter=max_iter,
                                    tol=tol)
         return replace_fields(out, notes=notes + out.notes)
-    sel = holdout_search(signals, estimation=identify, holdout=holdout, n=n, N=N, M=M, h=h,
-                         m=m, delays=delays)
-    if len(sel.fitted) == 0:
+    sel = holdout_search(signals, estimation=identify, holdout=holdout, folds=folds, n=n, N=N,
+                         M=M, h=h, m=m, delays=delays)
+    if len(sel.refit) == 0:
         raise ValueError("estimate(): the search grid has no feasible candidate; widen N, M or h")
-    order = rank_by(sel.fitted, "bic")
-    j_bic = int(order[0])
-    win = sel.fitted.row(0)
-    by_bic = (int(sel.fitted.columns["n"][j_bic]),
-              [int(v) for v in sel.fitted.columns["m"][j_bic]])
-    selection_text = (f"hold-out E on the last {holdout:.0%} of the estimation data (fit "
-                      f"{win['fit']:.1f} %); BIC on the same window would pick n={by_bic[0]} "
-                      f"m={by_bic[1]}")
-    if len(sel.estimation) > 1 or len(sel.fit_windows) > 1:
+    j_bic = int(rank_by(sel.refit, "bic")[0])
+    by_bic = (int(sel.refit.columns["n"][j_bic]), [int(v) for v in sel.refit.columns["m"][j_bic]])
+    blocks = " and ".join(f"[{w[0]:g}, {w[1]:g}]" for _, w in sel.folds)
+    selection_text = (f"mean hold-out E over {blocks} ({holdout:.0%} of the estimation data "
+                      f"each, fitted on the rest); BIC on the estimation data would pick "
+                      f"n={by_bic[0]} m={by_bic[1]}")
+    if len(sel.estimation) > 1:
         # several experiments: the stages after MFM simulate one record; keep MFM
         start = sel.refit.best(0)
         model = start.labelled(signals.output_name, signals.input_names)
@@ -135,43 +135,57 @@ def estimate(
                         False, "mfm", selection_text, {}, notes + (
                             "several estimation windows: the MFM estimate of their summed "
                             "Grams is returned (SRIVC and output error need one record)",))
-    fit_sig = signals.window(*sel.fit_windows[0])
     est_sig = signals.window(*sel.estimation[0])
-    hold = sel.holdout
-    ob = OBSERVER_FRACTION * (hold[1] - hold[0])
-    y_hold = np.asarray(signals.window(*hold).y)
+    folds_data = []
+    for (fit_w,), hold in sel.folds:
+        ob = OBSERVER_FRACTION * (hold[1] - hold[0])
+        folds_data.append((signals.window(*fit_w), hold, ob, np.asarray(signals.window(*hold).y)))
 
-    def hold_score(model):
-        try:
-            o = observe(model, signals, hold, observer_window=ob)
-        except ValueError:  # overflow / unobservable on the hold-out: not a usable stage
-            return np.inf, np.nan
-        return float(o.E), float(fit_percent(y_hold, o.y_sim))
+    def hold_score(models):
+        """Mean hold-out E over the folds and the mean fit % (one model per fold)."""
+        Es, fits = [], []
+        for model, (_, hold, ob, y_hold) in zip(models, folds_data):
+            try:
+                o = observe(model, signals, hold, observer_window=ob)
+            except ValueError:  # overflow / unobservable on the hold-out: not usable
+                return np.inf, np.nan
+            Es.append(float(o.E))
+            fits.append(float(fit_percent(y_hold, o.y_sim)))
+        return float(np.mean(Es)), float(np.mean(fits))
 
-    # every stage fitted without the hold-out window and compared on it: the MFM winner of each
-    # of the best `STRUCTURES` structures, and SRIVC from it; then output error on the best
-    tried = []  # (hold-out E, hold-out fit, rank in the search, stage, fit-part model)
+    def per_fold(stage, starts, **kw):
+        """The stage's model on each fold (its best iterate when it stopped early: the
+        hold-out E judges it), or None when it could not run on a fold."""
+        outs = [_staged(stage, f[0], s0, **kw) for s0, f in zip(starts, folds_data)]
+        return [o.model for o in outs] if all(o is not None for o in outs) else None
+
+    # every stage fitted on each fold's fit part and compared on its hold-out block: the MFM
+    # winner of each of the best `STRUCTURES` structures, and SRIVC from it; then output
+    # error on the best
+    tried = []  # (mean hold-out E, mean hold-out fit, rank, stage, per-fold models)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for i in _best_per_structure(sel.fitted, STRUCTURES):
-            first = sel.fitted.best(i)
-            tried.append((*hold_score(first), i, "mfm", first))
-            sv = _staged(srivc, fit_sig, first, max_iter=max_iter, tol=tol)
-            if sv is not None and bool(sv.converged):
-                tried.append((*hold_score(sv.model), i, "srivc", sv.model))
+        for i in _best_per_structure(sel.refit, STRUCTURES):
+            firsts = [r.best(i) for r in sel.fitted]
+            tried.append((*hold_score(firsts), i, "mfm", firsts))
+            seeds = [stabilised(f)[0] for f in firsts]
+            sv = per_fold(srivc, seeds, max_iter=max_iter, tol=tol)
+            if sv is not None:
+                tried.append((*hold_score(sv), i, "srivc", sv))
         # the consistent estimator is preferred: plain MFM (biased under output noise) must
         # predict the hold-out better by POLISH_GAIN, as output error must to replace SRIVC
         best = min(tried, key=lambda r: r[0] / (1 - POLISH_GAIN) if r[3] == "mfm" else r[0])
         if polish is not False:
-            base = best[4] if best[3] == "srivc" else stabilised(sel.fitted.best(best[2]))[0]
-            oe = _staged(output_error, fit_sig, base)
-            if oe is not None and oe.converged:
+            bases = best[4] if best[3] == "srivc" else [
+                stabilised(r.best(best[2]))[0] for r in sel.fitted]
+            oe = per_fold(output_error, bases)
+            if oe is not None:
                 stage = "srivc + output error" if best[3] == "srivc" else "output error"
-                E_oe, fit_oe = hold_score(oe.model)
+                E_oe, fit_oe = hold_score(oe)
                 if polish or E_oe < (1 - POLISH_GAIN) * best[0]:
-                    best = (E_oe, fit_oe, best[2], stage, oe.model)
+                    best = (E_oe, fit_oe, best[2], stage, oe)
     i, method = best[2], best[3]
-    held = {f"{r[3]} n={r[4].n} m={list(r[4].m)}": r[1] for r in tried}
+    held = {f"{r[3]} n={r[4][0].n} m={list(r[4][0].m)}": r[1] for r in tried}
     held[f"chosen: {method}"] = best[1]
     # the chosen stage on all estimation data, from the same candidate re-identified there
     start = sel.refit.best(i)
@@ -182,20 +196,26 @@ def estimate(
             warnings.simplefilter("always")
             if method != "output error":
                 fit = _staged(srivc, est_sig, seed, max_iter=max_iter, tol=tol)
-                model, names, cov = fit.model, fit.names, np.asarray(fit.covariance)
-                converged = bool(fit.converged)
+                if fit is not None:
+                    model, names, cov = fit.model, fit.names, np.asarray(fit.covariance)
+                    converged = bool(fit.converged)
             if method.endswith("output error"):
                 oe = _staged(output_error, est_sig, model if fit is not None else seed)
-                model, names, cov, converged = oe.model, oe.names, np.asarray(oe.covariance), \
-                    oe.converged
+                if oe is not None:
+                    model, names, cov, converged = oe.model, oe.names, \
+                        np.asarray(oe.covariance), oe.converged
+        if cov is None:
+            notes = notes + (f"{method} could not simulate on all estimation data: the MFM "
+                             "estimate is returned",)
+            method = "mfm"
         if not converged:
             for w in caught:
                 warnings.warn(str(w.message), stacklevel=2)
     if cov is None:
-        names = free_parameters(start)[0]
+        model, names = start, free_parameters(start)[0]
         cov = np.full((len(names), len(names)), np.nan)
-        notes = notes + ("no standard errors: the plain MFM estimate predicted the hold-out "
-                         "data best (SRIVC and output error did not improve it)",)
+        notes = notes + ("no standard errors: the plain MFM estimate is returned (it predicted "
+                         "the held-back data best, or the stages after it failed)",)
     std = np.sqrt(np.abs(np.diagonal(cov)))
     model = model.labelled(signals.output_name, signals.input_names)
     if method != "mfm" and signals.offset:

@@ -25,49 +25,75 @@ OBSERVER_FRACTION = 0.2  # initial-state observer over this share of a hold-out 
 
 
 class HoldoutSearch(NamedTuple):
-    """`holdout_search`'s result: `fitted` (candidates identified without the hold-out window,
-    ranked by their E on it), `refit` (the same candidates identified on all estimation
-    windows, in the same ranking), and the windows in time units."""
+    """`holdout_search`'s result. `fitted`: per fold, the candidates identified without its
+    hold-out window (E, fit on that window); `E`: each candidate's mean hold-out E over the
+    folds; `refit`: the same candidates identified on all estimation windows, ranked by `E`;
+    `folds`: per fold ((fit windows), hold-out window) in time units."""
 
-    fitted: SearchResult
+    fitted: tuple
+    E: np.ndarray
     refit: SearchResult
-    fit_windows: tuple
-    holdout: tuple
+    folds: tuple
     estimation: tuple
 
 
-def holdout_windows(signals: Signals, estimation, holdout: float):
-    """(fit windows, hold-out window, estimation windows) in time units: the last `holdout`
-    share of the last estimation window is held back."""
+FOLDS = 2  # hold-out blocks: the last `holdout` share, and (FOLDS = 2) the first one too
+
+
+def holdout_folds(signals: Signals, estimation, holdout: float, folds: int = FOLDS):
+    """(folds, estimation windows) in time units. Each fold is ((fit windows), hold-out
+    window): the last `holdout` share of the last estimation window, and with `folds=2` and a
+    single estimation window also the first share (fitted on the rest: every fit part stays
+    one contiguous record, so SRIVC and output error can run on it)."""
     if not (isinstance(holdout, float | int) and 0.05 <= holdout <= 0.5):
         raise ValueError(f"estimate(): holdout must be a share between 0.05 and 0.5 of the "
                          f"estimation data (got {holdout!r})")
+    if folds not in (1, 2):
+        raise ValueError(f"estimate(): folds must be 1 (hold out the end) or 2 (both ends), "
+                         f"got {folds!r}")
     dt, t0 = signals.dt, signals.t0
     segs = identification_segments(signals, estimation, "estimate")
-    a, b = segs[-1]  # [start, end) samples
-    cut = b - max(round(holdout * (b - a)), 1)
     t = lambda k: t0 + k * dt  # noqa: E731
-    fit = tuple((t(s), t(e - 1)) for s, e in segs[:-1]) + ((t(a), t(cut - 1)),)
-    return fit, (t(cut), t(b - 1)), tuple((t(s), t(e - 1)) for s, e in segs)
+    a, b = segs[-1]  # [start, end) samples
+    L = max(round(holdout * (b - a)), 1)
+    out = [(tuple((t(s), t(e - 1)) for s, e in segs[:-1]) + ((t(a), t(b - L - 1)),),
+            (t(b - L), t(b - 1)))]
+    if folds == 2 and len(segs) == 1:
+        out.insert(0, (((t(a + L), t(b - 1)),), (t(a), t(a + L - 1))))
+    return tuple(out), tuple((t(s), t(e - 1)) for s, e in segs)
 
 
-def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3, n, N, M, h,
-                   m=None, delays=None, chunk_size: int = 8) -> HoldoutSearch:
-    """Search the grid with the hold-out window left out of the Gram, rank by E on it, then
-    identify the same candidates on all estimation windows (same compiled program)."""
-    fit, hold, est = holdout_windows(signals, estimation, holdout)
+def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
+                   folds: int = FOLDS, n, N, M, h, m=None, delays=None,
+                   chunk_size: int = 8) -> HoldoutSearch:
+    """Search the grid once per fold with its hold-out window left out of the Gram, rank by
+    the mean E over the hold-out windows, then identify the same candidates on all
+    estimation windows. Every run shares one compiled program (windows are values)."""
+    fold_windows, est = holdout_folds(signals, estimation, holdout, folds)
+    fit0, hold0 = fold_windows[0]
     plan = plan_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score="E",
-                       validate=hold, identify=list(fit),
-                       observer_window=OBSERVER_FRACTION * (hold[1] - hold[0]), eta=None,
+                       validate=hold0, identify=list(fit0),
+                       observer_window=OBSERVER_FRACTION * (hold0[1] - hold0[0]), eta=None,
                        chunk_size=chunk_size, simulate=True)
-    fitted = run_plan(plan, signals)
-    # the refit: the estimation windows (padded to the same number of windows: same program)
-    segs = identification_segments(signals, list(est))
-    segs = segs + ((0, 0),) * (len(plan.where["segments"]) - len(segs))
-    where = dict(plan.where, segments=jnp.asarray(segs, dtype=jnp.int32))
-    refit = run_plan(plan._replace(where=where), signals)
-    refit = replace_fields(refit, rank=fitted.rank)
-    return HoldoutSearch(fitted, refit, fit, hold, est)
+    S = len(plan.where["segments"])
+
+    def run(windows, hold):
+        segs = identification_segments(signals, list(windows))
+        segs = segs + ((0, 0),) * (S - len(segs))  # empty windows: same program
+        where = {"segments": jnp.asarray(segs, dtype=jnp.int32),
+                 "v_start": jnp.asarray(round((hold[0] - signals.t0) / signals.dt),
+                                        dtype=jnp.int32)}
+        return run_plan(plan._replace(where=where), signals)
+
+    fitted = tuple(run(fw, hw) for fw, hw in fold_windows)
+    E = np.mean([np.where(r.columns["status"] == 0, r.columns["E"], np.inf) for r in fitted],
+                axis=0)
+    E = np.where(np.isfinite(E), E, np.inf)
+    c = fitted[-1].columns
+    rank = ranking(E, c["n"] + np.sum(c["m"] + 1, axis=1), ~np.isfinite(E), None)
+    fitted = tuple(replace_fields(r, rank=rank) for r in fitted)
+    refit = replace_fields(run(est, fold_windows[-1][1]), rank=rank)
+    return HoldoutSearch(fitted, E, refit, fold_windows, est)
 
 
 def rank_by(res: SearchResult, key: str) -> np.ndarray:

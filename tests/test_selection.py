@@ -71,21 +71,22 @@ def test_holdout_search_scores_on_samples_it_did_not_fit():
     `refit` identifies the same candidates on all estimation data."""
     sig = _record(4, noise=0.02)
     grid = dict(n=(1, 2), N=(3, 4), M=(3, 4), h=(2.0, 3.0))
-    sel = holdout_search(sig, **grid)
-    hold = sel.holdout
+    sel = holdout_search(sig, folds=1, **grid)
+    hold = sel.folds[-1][1]
     k0 = round(hold[0] / DT)
     y2 = np.asarray(sig.y).copy()
     y2[k0:] += 0.3 * np.sin(np.arange(T - k0))
-    sel2 = holdout_search(Signals(y2, sig.u, dt=DT, intersample=sig.intersample), **grid)
+    sel2 = holdout_search(Signals(y2, sig.u, dt=DT, intersample=sig.intersample), folds=1,
+                          **grid)
     # equal up to the rounding the FFT convolution spreads over every sample (eps log2(nfft)
     # of the largest term, ~5e-14 relative measured); a leak of the 0.3-amplitude change
     # into the Gram would move theta by ~1e-2
-    np.testing.assert_allclose(sel.fitted.columns["theta"], sel2.fitted.columns["theta"],
+    np.testing.assert_allclose(sel.fitted[0].columns["theta"], sel2.fitted[0].columns["theta"],
                                rtol=1e-10, atol=1e-12)
-    assert np.all(np.abs(sel.fitted.columns["E"] / sel2.fitted.columns["E"] - 1) > 1e-3)
-    best = sel.fitted.best(0)
+    assert np.all(np.abs(sel.fitted[0].columns["E"] / sel2.fitted[0].columns["E"] - 1) > 1e-3)
+    best = sel.fitted[0].best(0)
     obs = mfmjax.observe(best, sig, hold, observer_window=0.2 * (hold[1] - hold[0]))
-    np.testing.assert_allclose(float(sel.fitted.row(0)["E"]), float(obs.E), rtol=1e-9)
+    np.testing.assert_allclose(float(sel.fitted[0].row(0)["E"]), float(obs.E), rtol=1e-9)
     full = mfmjax.search(sig, n=best.n, m=[[best.m[0]]], N=best.mf.N, M=best.mf.M,
                          h=float(best.mf.h)).best()
     np.testing.assert_allclose(_ab(sel.refit.best(0)), _ab(full), rtol=1e-10)
@@ -115,7 +116,8 @@ def test_estimate_selects_on_held_back_data_and_reports_it():
     sig = _record(6, noise=0.05)
     est = mfmjax.estimate(sig, h=(2.0, 3.0), n=(1, 2, 3), N=(3, 4), M=(3, 4))
     assert est.model.n == 2 and est.method in ("srivc", "srivc + output error")
-    assert "hold-out E on the last 33%" in est.selection and "BIC" in est.selection
+    assert "mean hold-out E over [0, 14.95] and [30, 44.95]" in est.selection
+    assert "BIC" in est.selection
     assert est.holdout and all(math.isfinite(v) for v in est.holdout.values())
     assert "hold-out fit %" in est.summary()
     with pytest.raises(ValueError, match=r"estimate\(\): selection must be one of"):
@@ -126,7 +128,9 @@ def test_estimate_selects_on_held_back_data_and_reports_it():
 
 def test_estimate_outputs_one_model_per_output():
     """Two outputs of one experiment, from two different plants driven by the same input: one
-    MISO estimate each, each close to its own plant (noise 1e-3: MFM is exact to O(dt^4))."""
+    MISO estimate each, each close to its own plant: the simulated responses to the record's
+    input agree within 1 % of the output's range (noise 1e-3, i.e. 0.1 % of it; the hold-out
+    may keep an extra, nearly cancelling pole-zero pair, so orders are not compared)."""
     other = Model.from_coefficients([1.0, 1.0], [[2.0]], intersample=["foh"])
     s1 = _record(7, noise=1e-3)
     u = np.asarray(s1.u)
@@ -134,8 +138,11 @@ def test_estimate_outputs_one_model_per_output():
     y2 = y2 + 1e-3 * np.random.default_rng(1).standard_normal(T)
     s2 = Signals(y2, u, dt=DT, intersample=["foh"], output_name="y2")
     e1, e2 = mfmjax.estimate_outputs([s1, s2], h=(2.0, 3.0), n=(1, 2), N=(3, 4), M=(3, 4))
-    assert (e1.model.n, e2.model.n) == (2, 1) and e2.model.output_name == "y2"
-    np.testing.assert_allclose(np.asarray(e2.model.a), [1.0, 1.0], rtol=1e-2)
+    assert e1.model.output_name == "y" and e2.model.output_name == "y2"
+    for est, plant in ((e1, TRUE), (e2, other)):
+        want = np.asarray(mfmjax.simulate(plant, u, dt=DT))
+        got = np.asarray(mfmjax.simulate(est.model, u, dt=DT))
+        assert np.max(np.abs(got - want)) < 1e-2 * np.ptp(want)
     with pytest.raises(ValueError, match=r"estimate_outputs\(\): record 1 does not share"):
         mfmjax.estimate_outputs([s1, Signals(y2[:-5], u[:-5], dt=DT)], h=2.0)
 
