@@ -19,8 +19,12 @@ system. Validation: fit % = 100 (1 - ||y - y_sim|| / ||y - mean y||) over the wh
 third, simulated from the initial-state observer over its first 20 % (eq. 14), as the peers'
 least-squares initial state over the same samples.
 
-Times: `cold` is the first call in this process (it compiles; the persistent compilation cache
-is off here), `warm` a second identical call. Saves benchmarks/results/real_data.json.
+Times: `cold` is the first call in a fresh process (it compiles; the persistent compilation
+cache is off here), `warm` a second identical call. Each record runs in its own process: XLA's
+CPU backend keeps a few memory mappings per compiled program alive while the program is
+cached, and the whole benchmark in one process (about 300 programs) reached the kernel's
+65,530-mapping limit (`vm.max_map_count`) and aborted ("LLVM ERROR: Unable to allocate section
+memory"). Saves benchmarks/results/real_data.json.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
 import sys
 import time
 import warnings
@@ -79,6 +84,15 @@ def mfmjax_fit(name: str) -> dict:
                 structure=chosen)
 
 
+def mfmjax_fit_fresh(name: str) -> dict:
+    """`mfmjax_fit` in a fresh Python process (see the module docstring)."""
+    code = (f"import sys, json; sys.path.insert(0, {os.path.dirname(__file__)!r}); "
+            f"import real_data; print(json.dumps(real_data.mfmjax_fit({name!r})))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--no-peers", action="store_true",
@@ -92,7 +106,7 @@ def main():
     rows = []
     for name in DAISY:
         print(f"{name} ...", flush=True)
-        row = {"record": name, "description": DAISY[name][7], "mfmjax": mfmjax_fit(name)}
+        row = {"record": name, "description": DAISY[name][7], "mfmjax": mfmjax_fit_fresh(name)}
         if args.no_peers:
             row["peers"] = saved.get(name, {}).get("peers", {})
             row["peers_measured"] = "saved"

@@ -326,8 +326,10 @@ def estimate_outputs(records, **kwargs) -> tuple[Estimate, ...]:
     them). The records have equal shapes, so all outputs share the compiled programs.
     `kwargs` are those of `estimate`. **Returns:** one `Estimate` per record, in order.
     """
-    records = list(records) if not isinstance(records, Signals) else [records]
-    if not records or not all(isinstance(r, Signals) for r in records):
+    if isinstance(records, Signals):
+        records = [records]
+    if not isinstance(records, list | tuple) or not records or \
+            not all(isinstance(r, Signals) for r in records):
         raise TypeError("estimate_outputs(): records must be a list of Signals, one per output")
     first = records[0]
     for i, r in enumerate(records[1:], 1):
