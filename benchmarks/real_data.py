@@ -9,6 +9,7 @@ each record is estimation data, the last 1/3 validation; nothing of the validati
 seen before the model is fixed. Tasks: heat exchanger (1 -> 1), industrial dryer (3 inputs ->
 dry-bulb temperature), glass furnace (3 inputs -> all six outputs: one MISO model per output,
 `estimate_outputs`; the record's fit is the mean over outputs), heating system (1 -> 1).
+`estimate` is called with `folds=2` (both ends of the estimation data held out in turn).
 
 mfmjax: `Signals` with the default offset rule (`offset=None`), then `mfmjax.estimate(signals,
 identify=estimation window, ...)` with its defaults: structure and stage (MFM / SRIVC / output
@@ -60,7 +61,7 @@ def mfmjax_fit(name: str) -> dict:
     sigs = records(name)
     T, dt, K = sigs[0].n_samples, sigs[0].dt, sigs[0].n_inputs
     cut = (2 * T) // 3
-    kw = dict(identify=(sigs[0].t0, sigs[0].t0 + (cut - 1) * dt), n=(1, 2, 3),
+    kw = dict(identify=(sigs[0].t0, sigs[0].t0 + (cut - 1) * dt), folds=2, n=(1, 2, 3),
               m=[list(range(4))] * K, N=(3, 4, 5), M=(3, 4, 5), h=H[name],
               delays=[DELAYS[name]] * K if name in DELAYS else None)
     times = []

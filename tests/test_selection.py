@@ -114,7 +114,7 @@ def test_offset_default_handles_plant_data():
 
 def test_estimate_selects_on_held_back_data_and_reports_it():
     sig = _record(6, noise=0.05)
-    est = mfmjax.estimate(sig, h=(2.0, 3.0), n=(1, 2, 3), N=(3, 4), M=(3, 4))
+    est = mfmjax.estimate(sig, h=(2.0, 3.0), n=(1, 2, 3), N=(3, 4), M=(3, 4), folds=2)
     assert est.model.n == 2 and est.method in ("srivc", "srivc + output error")
     assert "mean hold-out E over [0, 14.95] and [30, 44.95]" in est.selection
     assert "BIC" in est.selection
