@@ -39,8 +39,8 @@ import time
 import warnings
 
 sys.path.insert(0, os.path.dirname(__file__))
-import real_data_peers  # noqa: E402  (sets BLAS threads before NumPy is imported)
 import numpy as np  # noqa: E402
+import real_data_peers  # noqa: E402  (sets BLAS threads before NumPy is imported)
 
 import mfmjax  # noqa: E402
 from mfmjax.datasets import DAISY, daisy  # noqa: E402

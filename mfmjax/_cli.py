@@ -114,16 +114,21 @@ def _add_window_args(p: argparse.ArgumentParser):
                    "observer over its first 20 %%) and report fit %% (data not fitted on)")
 
 
+def _record_window(text: str, name: str, sig) -> tuple[float, float]:
+    """A --NAME T0,T1 option that must lie inside the record (half a sample of slack)."""
+    w = _window(text, name)
+    end = sig.t0 + (sig.n_samples - 1) * sig.dt
+    if w[0] < sig.t0 - 0.5 * sig.dt or w[1] > end + 0.5 * sig.dt:
+        raise _UserError(f"--{name} {w[0]:g},{w[1]:g} must lie inside the record "
+                         f"[{sig.t0:g}, {end:g}]")
+    return w
+
+
 def _identify_part(args, sig):
     """The identification window as (t0, t1), or None for the whole record."""
     if not args.identify_window:
         return None
-    w = _window(args.identify_window, "identify-window")
-    end = sig.t0 + (sig.n_samples - 1) * sig.dt
-    if w[0] < sig.t0 - 0.5 * sig.dt or w[1] > end + 0.5 * sig.dt:
-        raise _UserError(f"--identify-window {w[0]:g},{w[1]:g} must lie inside the record "
-                         f"[{sig.t0:g}, {end:g}]")
-    return w
+    return _record_window(args.identify_window, "identify-window", sig)
 
 
 def _validation_report(args, sig, model) -> dict | None:
@@ -133,11 +138,7 @@ def _validation_report(args, sig, model) -> dict | None:
         return None
     import mfmjax
 
-    w = _window(args.validate_window, "validate-window")
-    end = sig.t0 + (sig.n_samples - 1) * sig.dt
-    if w[0] < sig.t0 - 0.5 * sig.dt or w[1] > end + 0.5 * sig.dt:
-        raise _UserError(f"--validate-window {w[0]:g},{w[1]:g} must lie inside the record "
-                         f"[{sig.t0:g}, {end:g}]")
+    w = _record_window(args.validate_window, "validate-window", sig)
     ident = _identify_part(args, sig)
     overlap = ident is None or (w[0] < ident[1] and ident[0] < w[1])
     obs = mfmjax.observe(model, sig, w, observer_window=0.2 * (w[1] - w[0]))

@@ -16,14 +16,13 @@ import equinox as eqx
 import numpy as np
 
 from ._model import Model
-from ._observers import observe
+from ._observers import fit_percent, observe
 from ._output_error import OutputErrorFit, free_parameters, output_error, stabilised
+from ._pytree import replace_fields
 from ._search import SearchResult, search
 from ._selection import OBSERVER_FRACTION, holdout_search, rank_by
 from ._signals import Signals
 from ._srivc import SrivcFit, srivc
-from ._observers import fit_percent
-from ._pytree import replace_fields
 from ._status import describe
 
 
@@ -82,8 +81,9 @@ def estimate(
       and with `folds=2` (one estimation window) the first share too, in turn; every
       candidate of the grid is scored by its mean simulation error E (eq. 17) on the blocks
       it was not fitted on, the state from the initial-state observer over each block's first
-      20 %; the winner is re-identified on all estimation data. `selection="bic"`: BIC ($N \ln(E/T) + k \ln N$, `score` and
-      `validate` as in `search`) on the estimation data, the previous default.
+      20 %; the winner is re-identified on all estimation data. `selection="bic"`: BIC
+      ($N \ln(E/T) + k \ln N$, `score` and `validate` as in `search`) on the estimation
+      data, the previous default.
     - Stages: the winner (stabilised: right-half-plane poles mirrored) starts SRIVC (exact
       prefilters, instruments from the noise-free auxiliary model), which removes the
       equation-error bias of MFM under output noise. `polish=None` (default) tries an
