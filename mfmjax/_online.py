@@ -89,8 +89,9 @@ class OnlineConfig(eqx.Module):
       (output, then each input) replaces this by absolute thresholds.
     - `mode`: `"paper"` (default: Algorithm 1 as the paper states it) or `"improved"`, which
       applies the changes listed in `improvements` (default: all of `IMPROVEMENTS`):
-      `"window"`: `n_reident` 8 (2000 s windows) and h in {50, 100, 200} unless given,
-      re-identification still triggered in the n_reident/2 intervals after an operating point;
+      `"window"`: `n_reident` 12 (3000 s windows: they keep the last set-point step, the
+      only excitation of the controller's input) and h in {50, 100, 200} unless given,
+      re-identification triggered in the n_reident/2 intervals after an operating point;
       `"delay"`: the delays of the inputs with a nonzero `delays` entry are searched on a grid
       of step `delay_step` within `delay_span` of the value in use at every identification;
       `"rank"`: candidates are fitted on the `n_reident` intervals before the one just closed,
@@ -142,7 +143,7 @@ class OnlineConfig(eqx.Module):
         delays=None, intersample="foh", smooth=False, output_rule: str = "cubic",
         offset: bool = True, eta=None, steady_rel: float = 0.1, steady_var=None,
         output_name: str = "y", input_names=None, mode: str = "paper", improvements=None,
-        delay_step: float = 10.0, delay_span: float = 20.0,
+        delay_step: float = 10.0, delay_span: float = 60.0,
         min_damping: float = 0.5, min_improvement: float = 0.1,
     ):
         fn = "OnlineConfig"
@@ -159,7 +160,7 @@ class OnlineConfig(eqx.Module):
             raise ValueError(f"OnlineConfig(): unknown improvements {bad}; choose from "
                              f"{list(IMPROVEMENTS)}")
         wide = "window" in improvements  # 2000 s re-identification windows, h up to 200 s
-        n_reident = (8 if wide else 4) if n_reident is None else n_reident
+        n_reident = (12 if wide else 4) if n_reident is None else n_reident
         h = ((50.0, 100.0, 200.0) if wide else (50.0, 100.0)) if h is None else h
         K = _b.integer(fn, "n_inputs", n_inputs, lo=1, fix="the on-line identifier needs inputs")
         dt = _b.number(fn, "dt", dt, lo=0, lo_open=True, fix="give the sampling interval")
@@ -628,12 +629,14 @@ def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
     S, R = c.samples, c.history
     delays = _delay_grid(c, state.model["delays"])
     current = _candidate(c, model) if model is not None else None
-    hold = ("rank" in c.improvements and current is not None and j >= w
+    hold = ("rank" in c.improvements and j >= w
             and all(state.iv[(j - i) % R][0] for i in range(min(w + 1, R))) and w + 1 <= R)
     sig_p = None
     if hold:
         reach = max(max(d) for d in delays) if delays else 0.0
-        sig_p, _ = _prediction_signals(state, j, max(reach, float(np.max(model["delays"]))))
+        if model is not None:
+            reach = max(reach, float(np.max(model["delays"])))
+        sig_p, _ = _prediction_signals(state, j, reach)
     if sig_p is None:  # rank on the fit window
         sig, plan, res, window = _identify_window(state, j, w, delays)
         ok = _ok_columns(c, res)
@@ -656,7 +659,11 @@ def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
         picks += [(res, i, wp, hp) for i in _ok_columns(c, res)[:TOP_RANK]]
     if not picks:
         return None, None, None, window, "forecast"
-    y_sim, status = _predict_many(sig_p, _stack(c, [p[:2] for p in picks], current), c.margin,
+    fill = current
+    if fill is None:  # first model: no current one; the stack's row 0 repeats the first pick
+        one = _stack(c, [picks[0][:2]], _candidate(c, _empty_model(c)))
+        fill = {key: v[1] for key, v in one.items()}
+    y_sim, status = _predict_many(sig_p, _stack(c, [p[:2] for p in picks], fill), c.margin,
                                   c.ob_final)
     y_j, _ = _take(state, j * S, S)
     E = np.sum((np.asarray(y_sim) - y_j) ** 2, axis=1) * c.dt
@@ -678,7 +685,8 @@ def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
         winner, window = _row(res2, same[0]), window2
     else:
         window = (window[0] + (w - wp) * S * c.dt, window[1])
-    return winner, float(E[0]), float(E[1 + best]), window, f"forecast of interval {j}"
+    E_cur = float(E[0]) if current is not None else None
+    return winner, E_cur, float(E[1 + best]), window, f"forecast of interval {j}"
 
 
 def _row(res, i: int) -> dict:
@@ -777,10 +785,14 @@ def _close_interval(state: OnlineState, j: int):
         err = float(np.mean((yi - y_pred) ** 2)) if np.all(np.isfinite(yi)) else 0.0
         alarm = err > ALARM * float(state.noise[1][0])
         event["alarm"] = alarm
-    # improved "window": 2000 s windows, but re-identification is triggered (as in the paper)
-    # in the n_reident/2 = 4 intervals after an operating point
+    # improved "window": 3000 s windows, but re-identification is triggered (as in the paper)
+    # in the n_reident/2 = 6 intervals after an operating point
     w_trig = w // 2 if has and "window" in c.improvements else w
-    if any(r[2] for r in recent(w_trig)) or alarm:  # an operating point lately (Step 2)
+    # ... and once more when the window before interval j first lies wholly after it (a window
+    # that spans an abrupt change fits neither regime)
+    clean = (has and "window" in c.improvements and j - w >= 0 and w + 1 <= R
+             and bool(iv[(j - w) % R][2]))
+    if any(r[2] for r in recent(w_trig)) or alarm or clean:  # an operating point (Step 2)
         op_time = max((float(state.t0) + (j - i) * S * c.dt
                        for i, r in enumerate(rows) if r[2]), default=float(model["op_time"]))
         if j + 1 < w:

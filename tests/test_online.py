@@ -307,7 +307,8 @@ def test_paper_mode_is_the_default():
     assert cfg.n_reident == 4 and cfg.h == (50.0, 100.0)
     imp = _config(mode="improved")
     assert imp.improvements == mfmjax._online.IMPROVEMENTS
-    assert imp.n_reident == 8 and imp.h == (50.0, 100.0, 200.0)  # the "window" change
+    assert imp.n_reident == 12 and imp.h == (50.0, 100.0, 200.0)  # the "window" change
+    assert imp.delay_span == 60.0 and imp.delay_step == 10.0
     assert _config(mode="improved", improvements=["delay"]).n_reident == 4
 
 
@@ -342,13 +343,16 @@ def test_damping_check():
 def test_delay_grid_bounded():
     from mfmjax._online import _delay_grid
 
-    cfg = _config(mode="improved", delays=(300.0, 0.0))
+    cfg = _config(mode="improved", delays=(300.0, 0.0), n_reident=8, delay_span=20.0)
     grid = _delay_grid(cfg, np.array([300.0, 0.0]))
     assert grid[0] == (280.0, 290.0, 300.0, 310.0, 320.0) and grid[1] == (0.0,)
     # never past the span bound that fixes the kernel length (h + delay < n_reident T / 2)
     top = _delay_grid(cfg, np.array([795.0, 0.0]))[0]
     assert top == (775.0, 785.0, 795.0)  # never past the span bound that fixes the kernels
     assert max(top) + max(cfg.h) < cfg.span_bound
+    # the default: +-60 s (the fitted dead time sits ~70 s below the forehearth's start value)
+    wide = _delay_grid(_config(mode="improved", delays=(300.0, 0.0)), np.array([300.0, 0.0]))
+    assert wide[0] == tuple(float(v) for v in range(240, 361, 10))
 
 
 def _noise_after_moves(n_iv=60, seed=1):
@@ -384,6 +388,9 @@ def test_improved_mode_on_switching_plant():
     # the improved operating-point test needs a move before a steady run, so the first
     # operating point is the switch (interval 16), not the quiet start (interval 0 in paper mode)
     assert ident.models[0]["interval"] == 16 - 1 + 1 and ident.models[0]["operating_point"] == "p1"
+    # the first model too is ranked on an interval it was not fitted on
+    first = next(e for e in ident.events if e["action"] == "first model")
+    assert first["E_on"] == f"forecast of interval {first['interval']}"
     # noise-free: exact once a window is all B (the winner may carry an extra numerator term,
     # identified as ~0, so the denominator is compared)
     last = ident.models[-1]
