@@ -59,7 +59,9 @@ from ._signals import INTERSAMPLE, Signals
 from ._status import Status
 
 FORMAT, VERSION = "mfmjax-online", 1
-IMPROVEMENTS = ("window", "delay", "rank", "damping", "hold", "steady", "alarm")  # in order
+IMPROVEMENTS = ("window", "delay", "refine", "rank", "damping", "hold", "steady",
+                "alarm")  # in order
+REFINE_STEPS = 4  # improved "refine": golden-section steps (the bracket shrinks to 0.618^4)
 ALARM = 100.0  # improved "alarm": re-identify when a prediction's MSE > 100 noise variances
 NOISE_FACTOR = 4.0  # improved steady test: the variance threshold is at least 4 noise variances
 HYSTERESIS = 2.0  # improved onset: the interval before a steady one exceeded 2x its threshold
@@ -94,6 +96,8 @@ class OnlineConfig(eqx.Module):
       re-identification triggered in the n_reident/2 intervals after an operating point;
       `"delay"`: the delays of the inputs with a nonzero `delays` entry are searched on a grid
       of step `delay_step` within `delay_span` of the value in use at every identification;
+      `"refine"`: the winner's tracked delays then refined by golden-section search within
+      +-`delay_step`/2 (REFINE_STEPS steps) on its observer-initialised E of the newest window;
       `"rank"`: candidates are fitted on the `n_reident` intervals before the one just closed,
       and they and the current model are ranked by their Step-5 forecast of that interval (data
       none was fitted on); the winner's settings are fitted again on the newest window;
@@ -683,10 +687,67 @@ def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
             and float(res2.columns["h"][i]) == winner["h"]]
     if same:
         winner, window = _row(res2, same[0]), window2
+        if "refine" in c.improvements:
+            winner = _refine_delays(state, j, wp, winner)
     else:
         window = (window[0] + (w - wp) * S * c.dt, window[1])
     E_cur = float(E[0]) if current is not None else None
     return winner, E_cur, float(E[1 + best]), window, f"forecast of interval {j}"
+
+
+def _refine_delays(state: OnlineState, j: int, w: int, winner: dict) -> dict:
+    """Improved "refine": each tracked input delay of `winner` (a row fitted on the `w` intervals
+    up to j) refined by golden-section search within +-delay_step/2 of its grid value (the
+    grid's resolution), minimising the observer-initialised E of the winner's structure, N, M
+    and h on that window; each trial delay is one search of that h. Returns the row with the
+    least E (the winner when no trial beats it)."""
+    c = state.config
+    best = winner
+    E_best = winner["E"] if winner["E"] is not None else math.inf
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+
+    def trial(k, d):
+        ds = list(best["delays"])
+        ds[k] = round(d, 3)
+        if ds[k] < 0 or ds[k] + winner["h"] >= c.span_bound:
+            return math.inf, None
+        _, _, res, _ = _identify_window(state, j, w, tuple((float(v),) for v in ds),
+                                        (winner["h"],))
+        same = _same_settings(c, res, winner)
+        if not same:
+            return math.inf, None
+        row = _row(res, same[0])
+        return (row["E"] if row["E"] is not None else math.inf), row
+
+    for k in range(c.n_inputs):
+        if c.delays[k] == 0:
+            continue
+        d0 = float(best["delays"][k])
+        lo, hi = d0 - c.delay_step / 2, d0 + c.delay_step / 2
+        x1, x2 = hi - g * (hi - lo), lo + g * (hi - lo)
+        f1, f2 = trial(k, x1), trial(k, x2)
+        for _ in range(REFINE_STEPS):
+            if f1[0] <= f2[0]:
+                hi, x2, f2 = x2, x1, f1
+                x1 = hi - g * (hi - lo)
+                f1 = trial(k, x1)
+            else:
+                lo, x1, f1 = x1, x2, f2
+                x2 = lo + g * (hi - lo)
+                f2 = trial(k, x2)
+        E_k, row = min((f1, f2), key=lambda v: v[0])
+        if row is not None and E_k < E_best:
+            best, E_best = row, E_k
+    return best
+
+
+def _same_settings(config: OnlineConfig, res, winner: dict) -> list:
+    """Columns of `res` (ok, best E first) with the winner's structure, N, M and h."""
+    return [i for i in _ok_columns(config, res) if int(res.columns["n"][i]) == winner["n"]
+            and [int(v) for v in res.columns["m"][i]] == winner["m"]
+            and float(res.columns["N"][i]) == float(winner["N"])
+            and float(res.columns["M"][i]) == float(winner["M"])
+            and float(res.columns["h"][i]) == winner["h"]]
 
 
 def _row(res, i: int) -> dict:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import mfmjax
-from mfmjax import OnlineConfig, OnlineIdentifier
+from mfmjax import Model, OnlineConfig, OnlineIdentifier
 from mfmjax.datasets import switching_experiment, switching_plant
 
 S = 250
@@ -399,6 +399,24 @@ def test_improved_mode_on_switching_plant():
     scale = float(np.var(y))
     ev = {e["interval"]: e for e in ident.events}
     assert max(ev[j]["mse"] for j in range(last["interval"] + 1, 40)) < 1e-6 * scale
+
+
+def test_delay_refinement_finds_off_grid_delay():
+    # noise-free plants A then B with a 34 s input-1 delay; the identifier starts from 30 s
+    A, B = switching_plant()
+    A, B = (Model.from_coefficients(p.a, p.b, delays=[34.0, 0.0], intersample=("foh", "zoh"))
+            for p in (A, B))
+    t, y, u, _ = switching_experiment(models=(A, B))
+    grid_only = tuple(v for v in mfmjax._online.IMPROVEMENTS if v != "refine")
+    last = {}
+    for name, imp in (("grid", grid_only), ("refined", None)):
+        ident = _run(t, y, u, _config(mode="improved", delays=(30.0, 0.0), improvements=imp),
+                     chunk=1000)
+        last[name] = ident.models[-1]["delays"][0]
+    # the 10 s grid holds the value in use (30 s) for the last model, 4 s off; golden-section
+    # refinement within +-5 s ends in a bracket 10 * 0.618^4 = 1.5 s wide around the E minimum
+    assert last["grid"] % 10.0 == 0.0 and abs(last["grid"] - 34.0) >= 4.0
+    assert abs(last["refined"] - 34.0) < 1.5
 
 
 def _forehearth(ex, mode, **kw):
