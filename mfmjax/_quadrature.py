@@ -196,9 +196,11 @@ def gregory_weights(n_samples: int, first, dt: float, end=None):
     return dt * jnp.where((k >= first) & (k < end), w, 0.0)
 
 
-def shift_samples(x, lag):
-    """x[j - lag] for every j, holding x[0] before the start (`lag` may be traced)."""
-    idx = jnp.clip(jnp.arange(x.shape[0]) - lag, 0, x.shape[0] - 1)
+def shift_samples(x, lag, rows=None):
+    """x[j - lag] for every j (or every j in `rows`), holding x[0] before the start and the
+    last sample after the end (`lag` and `rows` may be traced)."""
+    j = jnp.arange(x.shape[0]) if rows is None else rows
+    idx = jnp.clip(j - lag, 0, x.shape[0] - 1)
     return x[idx]
 
 
@@ -209,10 +211,11 @@ def split_delay(delay, dt: float):
     return d.astype(jnp.int32), jnp.clip(steps - d, 0.0, 1.0)
 
 
-def delayed_samples(x, delay, dt: float, mode: str):
-    r"""Values $\tilde x(t_j - \tau)$ of the zoh/foh interpolant of `x` at the sample times."""
+def delayed_samples(x, delay, dt: float, mode: str, rows=None):
+    r"""Values $\tilde x(t_j - \tau)$ of the zoh/foh interpolant of `x` at the sample times
+    (those of `rows` when given)."""
     d, f = split_delay(delay, dt)
-    prev, cur = shift_samples(x, d + 1), shift_samples(x, d)
+    prev, cur = shift_samples(x, d + 1, rows), shift_samples(x, d, rows)
     if mode == "zoh":
         return jnp.where(f > 0, prev, cur)
     return f * prev + (1 - f) * cur

@@ -66,16 +66,18 @@ def forced_response(model: Model, u, dt: float):
     return ss, drive, direct
 
 
-def forced_terms(ss, cols, modes, delays, dt: float, T: int):
-    """Per-step drive (T, n) and direct term (T,) of input columns through (A, B, D)."""
-    drive = jnp.zeros((T, ss.A.shape[0]))
-    direct = jnp.zeros(T)
+def forced_terms(ss, cols, modes, delays, dt: float, T: int, rows=None):
+    """Per-step drive (T, n) and direct term (T,) of input columns through (A, B, D); with
+    `rows` (sample indices, may be traced) only those steps, exactly as in the whole record."""
+    L = T if rows is None else rows.shape[0]
+    drive = jnp.zeros((L, ss.A.shape[0]))
+    direct = jnp.zeros(L)
     for k, (x, mode, tau) in enumerate(zip(cols, modes, delays)):
         d, f = split_delay(tau, dt)
         P, Q, R = _input_terms(ss.A, ss.B[:, k], mode, f, dt)
-        um1, u0, up1 = shift_samples(x, d + 1), shift_samples(x, d), shift_samples(x, d - 1)
+        um1, u0, up1 = (shift_samples(x, d + i, rows) for i in (1, 0, -1))
         drive = drive + um1[:, None] * P + u0[:, None] * Q + up1[:, None] * R
-        direct = direct + ss.D[0, k] * delayed_samples(x, tau, dt, mode)
+        direct = direct + ss.D[0, k] * delayed_samples(x, tau, dt, mode, rows)
     return drive, direct
 
 

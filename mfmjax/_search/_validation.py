@@ -14,9 +14,10 @@ from .._status import Status
 from ._grid import ChunkStatic
 
 
-def padded_forced(sig: Signals, c):
+def padded_forced(sig: Signals, c, rows=None):
     """Zero-padded realisation (eq. 18) of candidate `c` (keys a, b, offset, n, delays) and its
-    exact forced response to `sig`'s inputs: ((ss, drive, direct), live-state mask)."""
+    exact forced response to `sig`'s inputs (at the samples `rows`, default all):
+    ((ss, drive, direct), live-state mask)."""
     K, n_max = sig.n_inputs, c["a"].shape[0] - 1
     bs, modes, dl, u_cols = [c["b"][k] for k in range(K)], list(sig.intersample), [
         c["delays"][k] for k in range(K)], [sig.u[:, k] for k in range(K)]
@@ -26,18 +27,18 @@ def padded_forced(sig: Signals, c):
         dl.append(jnp.asarray(0.0))
         u_cols.append(jnp.ones(sig.n_samples))
     ss, live = realisation(c["a"], bs, c["n"])
-    drive, direct = forced_terms(ss, u_cols, modes, dl, sig.dt, sig.n_samples)
+    drive, direct = forced_terms(ss, u_cols, modes, dl, sig.dt, sig.n_samples, rows)
     return (ss, drive, direct), live
 
 
 def validate_candidate(sig: Signals, static: ChunkStatic, c, v_start=0):
     """E (eq. 17), fit and information criteria of one candidate on the validation window, the
     simulation started from the initial-state observer (eq. 14) of a zero-padded realisation."""
-    forced, live = padded_forced(sig, c)
-    obs = observe_forced(forced, sig.y, sig.dt, v_start, static.v_length,
-                          static.ob_length, live)
-    status = obs.status | jnp.where(hurwitz(c["a"]), 0, Status.UNSTABLE)
     yv = jax.lax.dynamic_slice_in_dim(sig.y, v_start, static.v_length)
+    # the drive of the validation window's samples only (the record can be 4x longer)
+    forced, live = padded_forced(sig, c, v_start + jnp.arange(static.v_length))
+    obs = observe_forced(forced, yv, sig.dt, 0, static.v_length, static.ob_length, live)
+    status = obs.status | jnp.where(hurwitz(c["a"]), 0, Status.UNSTABLE)
     Nv = static.v_length
     loglik = Nv * jnp.log(jnp.maximum(obs.E / (Nv * sig.dt), 1e-300))
     return dict(E=obs.E, fit=fit_percent(yv, obs.y_sim), aic=loglik + 2 * c["k"],
