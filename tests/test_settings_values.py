@@ -143,3 +143,13 @@ def test_online_identifier_compiles_its_programs_once_per_run(monkeypatch):
     assert len(runs) >= len(lengths) + 2  # several identifications per window length
     for program in ("jit(evaluate_chunk)", "jit(_score)", "jit(_predict)"):
         assert names.count(program) <= len(lengths), (program, names.count(program), runs)
+
+
+def test_output_error_new_step_limit_compiles_nothing(noisy):
+    """max_steps, rtol and atol are values of the compiled Levenberg-Marquardt loop."""
+    start = mfmjax.identify(noisy, ST, ModulatingFunction(*_settings(1)[0]))
+    mfmjax.output_error(noisy, start, max_steps=3)
+    with compiles() as names:
+        fit = mfmjax.output_error(noisy, start, max_steps=5, rtol=1e-9, atol=1e-11)
+    assert names == [], f"a new step limit compiled {names}"
+    assert fit.steps <= 5
