@@ -96,8 +96,10 @@ def estimate(
       it chose better (benchmarks/real_data.py uses it), but SRIVC's filters start from rest,
       so on a fit part that starts mid-record SRIVC is penalised by its start-up transient;
       the default `folds=1` fits from the record's start.
-    - Grid arguments are those of `search`; include `m` up to n (feed-through) where the data
-      have lag-0 effects.
+    - Grid arguments are those of `search`, except the default `m`: with hold-out selection
+      it is m_k = 0..n for every input (direct feed-through, m_k = n, included; a strictly
+      proper model wins unless the lag-0 term predicts the held-back data better); with
+      `selection="bic"` it is search's 0..n-1.
 
     **Returns:** `Estimate`: `model`, `std_errors` and `covariance` (SRIVC's IV covariance,
     or output error's Gauss-Newton covariance; NaN for the plain MFM stage), `converged`,
@@ -119,6 +121,8 @@ def estimate(
         out = estimate_from_search(signals, res, polish=bool(polish), max_iter=max_iter,
                                    tol=tol)
         return replace_fields(out, notes=notes + out.notes)
+    if m is None:  # feed-through (m_k = n) in the grid: the held-back data decide if it is used
+        m = [list(range(int(np.max(n)) + 1))] * signals.n_inputs
     sel = holdout_search(signals, estimation=identify, holdout=holdout, folds=folds, n=n, N=N,
                          M=M, h=h, m=m, delays=delays)
     if len(sel.refit) == 0:
