@@ -14,7 +14,7 @@ dry-bulb temperature), glass furnace (3 inputs -> all six outputs: one MISO mode
 mfmjax: `Signals` with the default offset rule (`offset=None`), then `mfmjax.estimate(signals,
 identify=estimation window, ...)` with its defaults: structure and stage (MFM / SRIVC / output
 error) chosen by the mean simulation error on two held-back blocks of the estimation data (its
-first and last third, each fitted on the rest); grids n = 1..3, m_k = 0..n (feed-through
+first and last third, each fitted on the rest); grids n = 1..4, m_k = 0..n (feed-through
 included), N, M = 3..5, h per record below (in the record's time unit), delays on the heating
 system. Validation: fit % = 100 (1 - ||y - y_sim|| / ||y - mean y||) over the whole validation
 third, simulated from the initial-state observer over its first 20 % (eq. 14), as the peers'
@@ -47,6 +47,7 @@ from mfmjax.datasets import DAISY, daisy  # noqa: E402
 
 H = {"heat_exchanger": (10, 20, 40, 80), "dryer": (50, 100, 200, 400),
      "glass_furnace": (10, 20, 40, 80), "heating_system": (40, 80, 160, 320)}
+N_ORDERS = (1, 2, 3, 4)  # n; m_k = 0..n (feed-through included)
 DELAYS = {"heating_system": (0, 2, 4, 6)}  # time units (dt = 2 s): 0..3 samples, as the peers
 RESULTS = os.path.join(os.path.dirname(__file__), "results")
 
@@ -61,8 +62,8 @@ def mfmjax_fit(name: str) -> dict:
     sigs = records(name)
     T, dt, K = sigs[0].n_samples, sigs[0].dt, sigs[0].n_inputs
     cut = (2 * T) // 3
-    kw = dict(identify=(sigs[0].t0, sigs[0].t0 + (cut - 1) * dt), folds=2, n=(1, 2, 3),
-              m=[list(range(4))] * K, N=(3, 4, 5), M=(3, 4, 5), h=H[name],
+    kw = dict(identify=(sigs[0].t0, sigs[0].t0 + (cut - 1) * dt), folds=2, n=N_ORDERS,
+              m=[list(range(max(N_ORDERS) + 1))] * K, N=(3, 4, 5), M=(3, 4, 5), h=H[name],
               delays=[DELAYS[name]] * K if name in DELAYS else None)
     times = []
     for _ in range(2):  # cold, warm
@@ -99,11 +100,15 @@ def main():
     parser.add_argument("--no-peers", action="store_true",
                         help="reuse benchmarks/results/real_data_peers.json")
     args = parser.parse_args()
-    saved = {}
+    saved, previous = {}, {}
     path = os.path.join(RESULTS, "real_data_peers.json")
     if args.no_peers and os.path.exists(path):
         with open(path) as fh:
             saved = {r["record"]: r for r in json.load(fh)}
+        last = os.path.join(RESULTS, "real_data.json")  # the no-mean-removal variant, if run
+        if os.path.exists(last):
+            with open(last) as fh:
+                previous = {r["record"]: r for r in json.load(fh)}
     rows = []
     for name in DAISY:
         print(f"{name} ...", flush=True)
@@ -111,6 +116,8 @@ def main():
         if args.no_peers:
             row["peers"] = saved.get(name, {}).get("peers", {})
             row["peers_measured"] = "saved"
+            if "peers_no_mean_removal" in previous.get(name, {}):
+                row["peers_no_mean_removal"] = previous[name]["peers_no_mean_removal"]
         else:
             row["peers"] = real_data_peers.peers(name)["peers"]
             row["peers_no_mean_removal"] = real_data_peers.peers(name, False)["peers"]
