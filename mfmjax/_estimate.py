@@ -236,7 +236,6 @@ def estimate(
 STRUCTURES = 8  # structures whose best setting goes on to SRIVC in the hold-out comparison
 
 
-
 def _best_per_structure(res: SearchResult, count: int) -> list[int]:
     """Ranks (in `res`) of the best candidate of each of the first `count` structures."""
     seen, out = set(), []

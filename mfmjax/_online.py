@@ -680,11 +680,7 @@ def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
     # the winner's settings fitted again on the newest window (it includes interval j)
     _, _, res2, window2 = _identify_window(state, j, wp, tuple((d,) for d in winner["delays"]),
                                            hp)
-    same = [i for i in _ok_columns(c, res2) if int(res2.columns["n"][i]) == winner["n"]
-            and [int(v) for v in res2.columns["m"][i]] == winner["m"]
-            and float(res2.columns["N"][i]) == float(winner["N"])
-            and float(res2.columns["M"][i]) == float(winner["M"])
-            and float(res2.columns["h"][i]) == winner["h"]]
+    same = _same_settings(c, res2, winner)
     if same:
         winner, window = _row(res2, same[0]), window2
         if "refine" in c.improvements:
