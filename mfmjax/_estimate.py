@@ -15,15 +15,19 @@ import warnings
 import equinox as eqx
 import numpy as np
 
+from . import _boundary as _b
+from ._batch import map_pairs
+from ._boundary import check_search
 from ._model import Model
 from ._observers import fit_percent, observe
-from ._output_error import OutputErrorFit, free_parameters, output_error, stabilised
+from ._output_error import OutputErrorFit, free_parameters, output_error, output_error_many, stabilised
 from ._pytree import replace_fields
-from ._search import SearchResult, search
+from ._search import SearchResult, plan_search, run_plan
+from ._search._grid import CHUNK_SETTINGS
 from ._selection import OBSERVER_FRACTION, holdout_search, rank_by
 from ._signals import Signals
-from ._srivc import SrivcFit, srivc
-from ._status import describe
+from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc
+from ._status import Status, describe
 
 
 class Estimate(eqx.Module):
@@ -106,131 +110,205 @@ def estimate(
     `selection`, `holdout` and every stage's result. A stage that did not converge says so
     in `converged` and `summary()`, and warns.
     """
+    records, single = _as_records(signals)
     if polish is not None and not isinstance(polish, bool):
         raise TypeError(f"estimate(): polish must be True or False (or None: decided on the "
                         f"hold-out data), got {polish!r}")
     if selection not in SELECTIONS:
         raise ValueError(f"estimate(): selection must be one of {SELECTIONS} "
                          f"(got {selection!r})")
-    notes = (signals.offset_note,) if signals.offset_note else ()
+    max_iter = _b.integer("estimate", "max_iter", max_iter, lo=1, hi=MAX_ITER_LIMIT,
+                          fix="give the largest number of SRIVC solves")
+    tol = _b.number("estimate", "tol", tol, lo=0, lo_open=True,
+                    fix="give a relative parameter change such as 1e-8")
+    first = records[0]
     if selection == "bic":
         if identify is not None:
             raise ValueError("estimate(): identify windows need selection='holdout'")
-        res = search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score,
-                     validate=validate)
-        out = estimate_from_search(signals, res, polish=bool(polish), max_iter=max_iter,
-                                   tol=tol)
-        return replace_fields(out, notes=notes + out.notes)
-    if m is None:  # feed-through (m_k = n) in the grid: the held-back data decide if it is used
-        m = [list(range(int(np.max(n)) + 1))] * signals.n_inputs
-    sel = holdout_search(signals, estimation=identify, holdout=holdout, folds=folds, n=n, N=N,
-                         M=M, h=h, m=m, delays=delays)
-    if len(sel.refit) == 0:
+        kw = dict(n=n, N=N, M=M, h=h, m=m, delays=delays, score=score, validate=validate,
+                  observer_window=None, eta=None, chunk_size=CHUNK_SETTINGS, simulate=True)
+        check_search(first, progress=None, **kw)
+        results = run_plan(plan_search(first, **kw), first, records=records)
+        outs = _from_search(records, results, polish=bool(polish), max_iter=max_iter, tol=tol)
+    else:
+        if m is None:  # feed-through (m_k = n) in the grid: the held-back data decide
+            m = [list(range(int(np.max(n)) + 1))] * first.n_inputs
+        sels = holdout_search(first, estimation=identify, holdout=holdout, folds=folds, n=n,
+                              N=N, M=M, h=h, m=m, delays=delays, records=records)
+        outs = _from_holdout(records, sels, holdout=holdout, polish=polish, max_iter=max_iter,
+                             tol=tol)
+    outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes)
+            for o, r in zip(outs, records)]
+    for r, o in enumerate(outs):
+        if not o.converged:
+            which = "" if single else f" (record {r})"
+            warnings.warn(f"estimate(){which}: {o.method} did not converge ({_reason(o)}); the "
+                          "estimate is its best iterate and its standard errors are not "
+                          "trustworthy: check the grid or raise max_iter", stacklevel=2)
+    return outs[0] if single else tuple(outs)
+
+
+def _as_records(signals):
+    """([records], single): one `Signals`, or a non-empty list of them of one layout."""
+    if isinstance(signals, Signals):
+        return [signals], True
+    if not isinstance(signals, list | tuple) or not signals or \
+            not all(isinstance(r, Signals) for r in signals):
+        raise TypeError("estimate(): signals must be a Signals or a list of Signals of one "
+                        f"layout (a batch of records), got {type(signals).__name__}")
+    first = signals[0]
+    layout = lambda r: (r.n_samples, r.n_inputs, r.dt, r.t0, r.intersample, r.smooth,  # noqa: E731
+                        r.offset, r.output_rule)
+    for i, r in enumerate(signals[1:], 1):
+        if layout(r) != layout(first):
+            raise ValueError(
+                f"estimate(): record {i} differs from record 0 in length, inputs, dt, t0, "
+                "intersample, smoothing, offset or output rule; a batch needs records of one "
+                "layout (give offset=True or False explicitly so the data do not decide it)")
+    return list(signals), False
+
+
+def _reason(est: Estimate) -> str:
+    if est.output_error is not None and est.method.endswith("output error"):
+        return est.output_error.result
+    return est.srivc.describe() if est.srivc is not None else "no stage ran"
+
+
+def _observed(signals: Signals, model: Model, window, observer_window):
+    return observe(model, signals, window, observer_window=observer_window)
+
+
+def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
+    """The stages of `estimate` after its hold-out search, every stage over all records and
+    candidates in one compiled call per model structure."""
+    R, sel0 = len(records), sels[0]
+    if len(sel0.refit) == 0:
         raise ValueError("estimate(): the search grid has no feasible candidate; widen N, M or h")
-    j_bic = int(rank_by(sel.refit, "bic")[0])
-    by_bic = (int(sel.refit.columns["n"][j_bic]), [int(v) for v in sel.refit.columns["m"][j_bic]])
-    blocks = " and ".join(f"[{w[0]:g}, {w[1]:g}]" for _, w in sel.folds)
-    selection_text = (f"mean hold-out E over {blocks} ({holdout:.0%} of the estimation data "
-                      f"each, fitted on the rest); BIC on the estimation data would pick "
-                      f"n={by_bic[0]} m={by_bic[1]}")
-    if len(sel.estimation) > 1:
+    blocks = " and ".join(f"[{w[0]:g}, {w[1]:g}]" for _, w in sel0.folds)
+    texts = []
+    for sel in sels:
+        j = int(rank_by(sel.refit, "bic")[0])
+        by_bic = (int(sel.refit.columns["n"][j]), [int(v) for v in sel.refit.columns["m"][j]])
+        texts.append(f"mean hold-out E over {blocks} ({holdout:.0%} of the estimation data "
+                     f"each, fitted on the rest); BIC on the estimation data would pick "
+                     f"n={by_bic[0]} m={by_bic[1]}")
+    if len(sel0.estimation) > 1:
         # several experiments: the stages after MFM simulate one record; keep MFM
-        start = sel.refit.best(0)
-        model = start.labelled(signals.output_name, signals.input_names)
-        names = free_parameters(start)[0]
-        nan = np.full(len(names), np.nan)
-        return Estimate(model, start, sel.refit, None, None, names, nan, np.diag(nan), True,
-                        False, "mfm", selection_text, {}, notes + (
-                            "several estimation windows: the MFM estimate of their summed "
-                            "Grams is returned (SRIVC and output error need one record)",))
-    est_sig = signals.window(*sel.estimation[0])
-    folds_data = []
-    for (fit_w,), hold in sel.folds:
-        ob = OBSERVER_FRACTION * (hold[1] - hold[0])
-        folds_data.append((signals.window(*fit_w), hold, ob, np.asarray(signals.window(*hold).y)))
+        out = []
+        for r, sel in enumerate(sels):
+            start = sel.refit.best(0)
+            model = start.labelled(records[r].output_name, records[r].input_names)
+            names = free_parameters(start)[0]
+            nan = np.full(len(names), np.nan)
+            out.append(Estimate(model, start, sel.refit, None, None, names, nan, np.diag(nan),
+                                True, False, "mfm", texts[r], {}, (
+                                    "several estimation windows: the MFM estimate of their "
+                                    "summed Grams is returned (SRIVC and output error need one "
+                                    "record)",)))
+        return out
+    est_sigs = [rec.window(*sel0.estimation[0]) for rec in records]
+    folds = []  # (fit part per record, hold-out window, observer length, y_hold per record)
+    for (fit_w,), hold in sel0.folds:
+        folds.append(([rec.window(*fit_w) for rec in records], hold,
+                      OBSERVER_FRACTION * (hold[1] - hold[0]),
+                      [np.asarray(rec.window(*hold).y) for rec in records]))
 
-    def hold_score(models):
-        """Mean hold-out E over the folds and the mean fit % (one model per fold)."""
-        Es, fits = [], []
-        for model, (_, hold, ob, y_hold) in zip(models, folds_data):
-            try:
-                o = observe(model, signals, hold, observer_window=ob)
-            except ValueError:  # overflow / unobservable on the hold-out: not usable
-                return np.inf, np.nan
-            Es.append(float(o.E))
-            fits.append(float(fit_percent(y_hold, o.y_sim)))
-        return float(np.mean(Es)), float(np.mean(fits))
+    def hold_scores(pairs):
+        """(mean hold-out E over the folds, mean fit %) of each (record, models per fold)."""
+        E = np.zeros((len(pairs), len(folds)))
+        fit = np.zeros_like(E)
+        for f, (_, hold, ob, y_hold) in enumerate(folds):
+            obs = map_pairs(_observed, [records[r] for r, _ in pairs],
+                            [ms[f] for _, ms in pairs], window=hold, observer_window=ob)
+            for k, ((r, _), o) in enumerate(zip(pairs, obs)):
+                if int(o.status) & (Status.OVERFLOW | Status.UNOBSERVABLE):
+                    E[k, f], fit[k, f] = np.inf, np.nan  # not usable on the hold-out
+                else:
+                    E[k, f], fit[k, f] = float(o.E), float(fit_percent(y_hold[r], o.y_sim))
+        return [(float(np.mean(e)), float(np.mean(q))) if np.all(np.isfinite(e))
+                else (np.inf, np.nan) for e, q in zip(E, fit)]
 
-    def per_fold(stage, starts, **kw):
-        """The stage's model on each fold (its best iterate when it stopped early: the
-        hold-out E judges it), or None when it could not run on a fold."""
-        outs = [_staged(stage, f[0], s0, **kw) for s0, f in zip(starts, folds_data)]
-        return [o.model for o in outs] if all(o is not None for o in outs) else None
+    def per_fold(stage, pairs, **kw):
+        """The stage's model on each fold for each (record, starts per fold) (its best iterate
+        when it stopped early: the hold-out E judges it); None where it could not run."""
+        outs = [_staged_many(stage, [folds[f][0][r] for r, _ in pairs],
+                             [ms[f] for _, ms in pairs], **kw) for f in range(len(folds))]
+        return [None if any(o[k] is None for o in outs) else [o[k].model for o in outs]
+                for k in range(len(pairs))]
 
     # every stage fitted on each fold's fit part and compared on its hold-out block: the MFM
     # winner of each of the best `STRUCTURES` structures, and SRIVC from it; then output
     # error on the best
-    tried = []  # (mean hold-out E, mean hold-out fit, rank, stage, per-fold models)
+    cand = [(r, i) for r in range(R) for i in _best_per_structure(sels[r].refit, STRUCTURES)]
+    firsts = [[x.best(i) for x in sels[r].fitted] for r, i in cand]
+    tried = [[] for _ in range(R)]  # (mean hold-out E, fit, rank, stage, per-fold models)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for i in _best_per_structure(sel.refit, STRUCTURES):
-            firsts = [r.best(i) for r in sel.fitted]
-            tried.append((*hold_score(firsts), i, "mfm", firsts))
-            seeds = [stabilised(f)[0] for f in firsts]
-            sv = per_fold(srivc, seeds, max_iter=max_iter, tol=tol)
-            if sv is not None:
-                tried.append((*hold_score(sv), i, "srivc", sv))
+        mfm = hold_scores([(r, fs) for (r, _), fs in zip(cand, firsts)])
+        sv = per_fold(srivc, [(r, [stabilised(x)[0] for x in fs])
+                              for (r, _), fs in zip(cand, firsts)], max_iter=max_iter, tol=tol)
+        live = [k for k, v in enumerate(sv) if v is not None]
+        sv_score = dict(zip(live, hold_scores([(cand[k][0], sv[k]) for k in live])))
+        for k, (r, i) in enumerate(cand):
+            tried[r].append((*mfm[k], i, "mfm", firsts[k]))
+            if k in sv_score:
+                tried[r].append((*sv_score[k], i, "srivc", sv[k]))
         # the consistent estimator is preferred: plain MFM (biased under output noise) must
         # predict the hold-out better by POLISH_GAIN, as output error must to replace SRIVC
-        best = min(tried, key=lambda r: r[0] / (1 - POLISH_GAIN) if r[3] == "mfm" else r[0])
+        best = [min(t, key=lambda x: x[0] / (1 - POLISH_GAIN) if x[3] == "mfm" else x[0])
+                for t in tried]
         if polish is not False:
-            bases = best[4] if best[3] == "srivc" else [
-                stabilised(r.best(best[2]))[0] for r in sel.fitted]
-            oe = per_fold(output_error, bases)
-            if oe is not None:
-                stage = "srivc + output error" if best[3] == "srivc" else "output error"
-                E_oe, fit_oe = hold_score(oe)
-                if polish or E_oe < (1 - POLISH_GAIN) * best[0]:
-                    best = (E_oe, fit_oe, best[2], stage, oe)
-    i, method = best[2], best[3]
-    held = {f"{r[3]} n={r[4][0].n} m={list(r[4][0].m)}": r[1] for r in tried}
-    held[f"chosen: {method}"] = best[1]
+            bases = [b[4] if b[3] == "srivc" else [stabilised(x.best(b[2]))[0]
+                                                   for x in sels[r].fitted]
+                     for r, b in enumerate(best)]
+            oe = per_fold(output_error, list(enumerate(bases)))
+            live = [r for r in range(R) if oe[r] is not None]
+            for r, (E_oe, fit_oe) in zip(live, hold_scores([(r, oe[r]) for r in live])):
+                stage = "srivc + output error" if best[r][3] == "srivc" else "output error"
+                if polish or E_oe < (1 - POLISH_GAIN) * best[r][0]:
+                    best[r] = (E_oe, fit_oe, best[r][2], stage, oe[r])
     # the chosen stage on all estimation data, from the same candidate re-identified there
-    start = sel.refit.best(i)
-    seed, was_unstable = stabilised(start)
-    fit, oe, cov, model, names, converged = None, None, None, start, (), True
-    if method != "mfm":
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            if method != "output error":
-                fit = _staged(srivc, est_sig, seed, max_iter=max_iter, tol=tol)
-                if fit is not None:
-                    model, names, cov = fit.model, fit.names, np.asarray(fit.covariance)
-                    converged = bool(fit.converged)
-            if method.endswith("output error"):
-                oe = _staged(output_error, est_sig, model if fit is not None else seed)
-                if oe is not None:
-                    model, names, cov, converged = oe.model, oe.names, \
-                        np.asarray(oe.covariance), oe.converged
+    starts = [sels[r].refit.best(best[r][2]) for r in range(R)]
+    seeds = [stabilised(s) for s in starts]
+    methods = [b[3] for b in best]
+    sv_rec = [r for r in range(R) if methods[r] not in ("mfm", "output error")]
+    fits = dict(zip(sv_rec, _staged_many(srivc, [est_sigs[r] for r in sv_rec],
+                                         [seeds[r][0] for r in sv_rec], max_iter=max_iter,
+                                         tol=tol)))
+    oe_rec = [r for r in range(R) if methods[r].endswith("output error")]
+    oes = dict(zip(oe_rec, _staged_many(
+        output_error, [est_sigs[r] for r in oe_rec],
+        [fits[r].model if fits.get(r) is not None else seeds[r][0] for r in oe_rec])))
+    out = []
+    for r in range(R):
+        tr, b, method = tried[r], best[r], methods[r]
+        held = {f"{x[3]} n={x[4][0].n} m={list(x[4][0].m)}": x[1] for x in tr}
+        held[f"chosen: {method}"] = b[1]
+        fit, oe, start = fits.get(r), oes.get(r), starts[r]
+        model, names, cov, converged, notes = start, (), None, True, ()
+        if fit is not None:
+            model, names, cov = fit.model, fit.names, np.asarray(fit.covariance)
+            converged = bool(fit.converged)
+        if oe is not None:
+            model, names, cov, converged = oe.model, oe.names, np.asarray(oe.covariance), \
+                oe.converged
+        if method != "mfm" and cov is None:
+            notes += (f"{method} could not simulate on all estimation data: the MFM estimate "
+                      "is returned",)
+            method, converged = "mfm", True
         if cov is None:
-            notes = notes + (f"{method} could not simulate on all estimation data: the MFM "
-                             "estimate is returned",)
-            method = "mfm"
-        if not converged:
-            for w in caught:
-                warnings.warn(str(w.message), stacklevel=2)
-    if cov is None:
-        model, names = start, free_parameters(start)[0]
-        cov = np.full((len(names), len(names)), np.nan)
-        notes = notes + ("no standard errors: the plain MFM estimate is returned (it predicted "
-                         "the held-back data best, or the stages after it failed)",)
-    std = np.sqrt(np.abs(np.diagonal(cov)))
-    model = model.labelled(signals.output_name, signals.input_names)
-    if method != "mfm" and signals.offset:
-        notes = notes + ("SRIVC / output error ran on data with the estimation means removed; "
-                         "the offset term is mapped back to the original levels",)
-    return Estimate(model, start, sel.refit, fit, oe, tuple(names), std, cov, converged,
-                    was_unstable, method, selection_text, held, notes)
+            model, names = start, free_parameters(start)[0]
+            cov = np.full((len(names), len(names)), np.nan)
+            notes += ("no standard errors: the plain MFM estimate is returned (it predicted "
+                      "the held-back data best, or the stages after it failed)",)
+        std = np.sqrt(np.abs(np.diagonal(cov)))
+        model = model.labelled(records[r].output_name, records[r].input_names)
+        if method != "mfm" and records[r].offset:
+            notes += ("SRIVC / output error ran on data with the estimation means removed; "
+                      "the offset term is mapped back to the original levels",)
+        out.append(Estimate(model, start, sels[r].refit, fit, oe, tuple(names), std, cov,
+                            converged, seeds[r][1], method, texts[r], held, notes))
+    return out
 
 
 STRUCTURES = 8  # structures whose best setting goes on to SRIVC in the hold-out comparison
@@ -251,26 +329,41 @@ def _best_per_structure(res: SearchResult, count: int) -> list[int]:
     return out or [0]
 
 
-def _staged(stage, signals: Signals, model: Model, **kw):
-    r"""`stage` (srivc or output_error) from `model` with its delays, on data with the means
-    removed when the model has an offset term: the filters and simulations start from rest
-    and the free parameters are scaled by their magnitude, so a level far from zero (97 degC
-    on the heat exchanger) would swamp them. The offset maps exactly between the two levels:
-    $b_{off}' = b_{off} + \sum_k b_{k0} \bar u_k - a_0 \bar y$. Returns None if the stage
-    raised (e.g. an overflowing simulation)."""
-    signals = _with(signals, model)
-    ybar, ubar = (0.0, np.zeros(signals.n_inputs))
-    if model.has_offset:
-        ybar, ubar = float(np.mean(signals.y)), np.asarray(np.mean(signals.u, axis=0))
-        signals = eqx.tree_at(lambda q: (q.y, q.u), signals,
-                              (signals.y - ybar, signals.u - ubar))
-        model = _shift_offset(model, ybar, ubar, +1.0)
-    try:
-        out = stage(signals, model, **kw)
-    except ValueError:
-        return None
-    if not model.has_offset:
-        return out
+def _staged_many(stage, records, models, **kw) -> list:
+    r"""`stage` (srivc or output_error) from each model with its delays on its record, all
+    pairs of one structure in one compiled call, on data with the means removed where the
+    model has an offset term: the filters and simulations start from rest and the free
+    parameters are scaled by their magnitude, so a level far from zero (97 degC on the heat
+    exchanger) would swamp them. The offset maps exactly between the two levels:
+    $b_{off}' = b_{off} + \sum_k b_{k0} \bar u_k - a_0 \bar y$. An entry is None where the
+    stage could not run (e.g. an overflowing simulation)."""
+    shifted, sigs, starts = [], [], []
+    for signals, model in zip(records, models):
+        signals = _with(signals, model)
+        ybar, ubar = (0.0, np.zeros(signals.n_inputs))
+        if model.has_offset:
+            ybar, ubar = float(np.mean(signals.y)), np.asarray(np.mean(signals.u, axis=0))
+            signals = eqx.tree_at(lambda q: (q.y, q.u), signals,
+                                  (signals.y - ybar, signals.u - ubar))
+            model = _shift_offset(model, ybar, ubar, +1.0)
+        shifted.append((ybar, ubar))
+        sigs.append(signals)
+        starts.append(model)
+    if not sigs:
+        return []
+    if stage is output_error:
+        outs = output_error_many(sigs, starts, **kw)
+    else:
+        try:
+            outs = map_pairs(stage, sigs, starts, **kw)
+        except ValueError:
+            outs = [None] * len(sigs)
+    return [out if out is None or not model.has_offset else _shifted_back(out, ybar, ubar)
+            for out, model, (ybar, ubar) in zip(outs, models, shifted)]
+
+
+def _shifted_back(out, ybar, ubar):
+    """A stage's result on mean-removed data at the original levels, with its covariance."""
     back = _shift_offset(out.model, ybar, ubar, -1.0)
     # covariance of (.., b_k0, .., offset): d offset / d a_0 = ybar, d / d b_k0 = -ubar_k
     J = np.eye(len(out.names))
@@ -298,29 +391,41 @@ def estimate_from_search(signals: Signals, res: SearchResult, *, polish: bool = 
                          max_iter: int = 30, tol: float = 1e-8) -> Estimate:
     """The stages of `estimate` after its search, from a `SearchResult` of `signals` (the
     winner's delays are used)."""
-    if len(res) == 0:
-        raise ValueError("estimate(): the search grid has no feasible candidate; widen N, M or h")
-    start = res.best(0)
-    signals = eqx.tree_at(lambda q: q.delays, signals, start.delays)  # the winner's delays
-    if int(start.status) != 0:
-        warnings.warn(f"estimate(): every candidate is flagged; starting from the best one "
-                      f"({describe(int(start.status))})", stacklevel=2)
-    seed, was_unstable = stabilised(start)
-    fit = _staged(srivc, signals, seed, max_iter=max_iter, tol=tol)
-    if fit is None:
+    return _from_search([signals], [res], polish=polish, max_iter=max_iter, tol=tol)[0]
+
+
+def _from_search(records, results, *, polish, max_iter, tol) -> list:
+    """SRIVC (and output error) from each record's search winner, batched by structure."""
+    starts = []
+    for r, res in enumerate(results):
+        if len(res) == 0:
+            raise ValueError("estimate(): the search grid has no feasible candidate; widen N, "
+                             "M or h")
+        start = res.best(0)
+        if int(start.status) != 0:
+            warnings.warn(f"estimate(): every candidate{'' if len(results) == 1 else f' of record {r}'} "
+                          f"is flagged; starting from the best one ({describe(int(start.status))})",
+                          stacklevel=3)
+        starts.append(start)
+    seeds = [stabilised(s) for s in starts]
+    fits = _staged_many(srivc, records, [s for s, _ in seeds], max_iter=max_iter, tol=tol)
+    if any(f is None for f in fits):
         raise ValueError("estimate(): SRIVC could not simulate the search's winner on this "
                          "record; try selection='holdout' or a smaller grid")
-    model, names, std = fit.model, fit.names, np.asarray(fit.std_errors)
-    cov = np.asarray(fit.covariance)
-    converged, method, oe = bool(fit.converged), "srivc", None
-    if polish:
-        oe = _staged(output_error, signals, model)
-        model, names, std = oe.model, oe.names, np.asarray(oe.std_errors)
-        cov = np.asarray(oe.covariance)
-        converged, method = oe.converged, "srivc + output error"
-    model = model.labelled(signals.output_name, signals.input_names)
-    return Estimate(model, start, res, fit, oe, tuple(names), std, cov, converged, was_unstable,
-                    method, f"{res.score.upper()} on the estimation data", {}, ())
+    oes = _staged_many(output_error, records, [f.model for f in fits]) if polish \
+        else [None] * len(fits)
+    out = []
+    for rec, res, start, (_, unstable), fit, oe in zip(records, results, starts, seeds, fits,
+                                                        oes):
+        stage = fit if oe is None else oe
+        model = stage.model.labelled(rec.output_name, rec.input_names)
+        converged = bool(fit.converged) if oe is None else oe.converged
+        out.append(Estimate(model, start, res, fit, oe, tuple(stage.names),
+                            np.asarray(stage.std_errors), np.asarray(stage.covariance),
+                            converged, unstable, "srivc" if oe is None else
+                            "srivc + output error", f"{res.score.upper()} on the estimation "
+                            "data", {}, ()))
+    return out
 
 
 def estimate_outputs(records, **kwargs) -> tuple[Estimate, ...]:

@@ -110,6 +110,11 @@ class _Residual(eqx.Module):
     dt: float = eqx.field(static=True)
     length: int = eqx.field(static=True)
 
+    @property
+    def size(self) -> int:
+        """Unknowns z: the free parameters and the initial state."""
+        return self.theta0.shape[-1] + self.x_init.shape[-1]
+
     def __call__(self, z, args):
         p = self.theta0.shape[0]
         sim = simulated_output(self.model, self.u, self.dt, self.start, self.length)
@@ -162,12 +167,23 @@ def output_error(
     warns. An unstable start has its right-half-plane poles mirrored first (`stabilised`).
     """
     from ._boundary import check_output_error
-    from ._observers import observe
 
     check_output_error(signals, window_=window, max_steps=max_steps, rtol=rtol, atol=atol)
 
     if not isinstance(model, Model):
         raise TypeError("output_error(): model must be a Model")
+    residual, meta = _prepare(signals, model, window)
+    z, result, n_steps = _lm(residual, jnp.zeros(residual.size), jnp.asarray(max_steps),
+                             jnp.asarray(rtol), jnp.asarray(atol))  # values: no new program
+    return _finish(residual, meta, z, result, n_steps)
+
+
+def _prepare(signals: Signals, model: Model, window):
+    """The scaled residual of `output_error` at its start (the initial state from the
+    observer, eq. 14) and what `_finish` needs. Raises ValueError when the start's simulation
+    overflows or its state is unobservable on the window."""
+    from ._observers import observe
+
     original = model
     model, was_unstable = stabilised(model)
     obs = observe(model, signals, window)
@@ -177,23 +193,28 @@ def output_error(
     names, theta0 = free_parameters(model)
     scale = np.maximum(np.abs(theta0), 1e-8 * max(np.max(np.abs(theta0)), 1e-300))
     x_scale = np.maximum(np.abs(np.asarray(obs.x_initial)), 1e-6 * float(jnp.std(yv)) + 1e-300)
-    p_theta = theta0.size
-    residual = _Residual(model.unlabelled(), signals.u, yv, jnp.asarray(theta0), jnp.asarray(scale),
-                         obs.x_initial, jnp.asarray(x_scale), jnp.asarray(k0, dtype=jnp.int32),
-                         signals.dt, length)
-    z0 = jnp.zeros(p_theta + model.n)
-    z, result, n_steps = _lm(residual, z0, jnp.asarray(max_steps), jnp.asarray(rtol),
-                             jnp.asarray(atol))  # values: a new limit is not a new program
+    residual = _Residual(model.unlabelled(), signals.u, yv, jnp.asarray(theta0),
+                         jnp.asarray(scale), obs.x_initial, jnp.asarray(x_scale),
+                         jnp.asarray(k0, dtype=jnp.int32), signals.dt, length)
+    return residual, (original, model, was_unstable, names, theta0, scale, x_scale, obs.x_initial)
+
+
+def _finish(residual, meta, z, result, n_steps) -> OutputErrorFit:
+    """`OutputErrorFit` from the solver's point: kept if usable and no worse than the start,
+    the Gauss-Newton covariance there; warns when not converged."""
+    original, model, was_unstable, names, theta0, scale, x_scale, x_init = meta
+    p_theta, length, dt = theta0.size, residual.length, residual.dt
+    z0 = jnp.zeros_like(z)
     code = LM_CODES[int(result)]
     r0, r = _residual_at(residual, z0), _residual_at(residual, z)
-    E0 = float(jnp.sum(r0**2)) * signals.dt
-    E1 = float(jnp.sum(r**2)) * signals.dt
+    E0 = float(jnp.sum(r0**2)) * dt
+    E1 = float(jnp.sum(r**2)) * dt
     # out of steps but better than the start: kept (the code says so); otherwise the start
     ok = code in USABLE and math.isfinite(E1) and E1 <= E0
     if not ok:
         z, E1 = z0, E0
     theta = np.asarray(theta0 + scale * np.asarray(z[:p_theta]))
-    x0 = obs.x_initial + jnp.asarray(x_scale) * z[p_theta:]
+    x0 = x_init + jnp.asarray(x_scale) * z[p_theta:]
     Jz = _jacobian(residual, z)  # d r / d z; parameters = theta0 + scale * z
     Jp = np.asarray(Jz) / np.concatenate([scale, x_scale])[None, :]
     dof = max(length - Jp.shape[1], 1)
@@ -205,10 +226,41 @@ def output_error(
     if not converged:
         warnings.warn(f"output_error(): not converged ({code} after {int(n_steps)} steps); the "
                       f"result is {'the best iterate' if ok else 'the start'}: raise max_steps or "
-                      "start from a better model (see OutputErrorFit.converged)", stacklevel=2)
+                      "start from a better model (see OutputErrorFit.converged)", stacklevel=3)
     return OutputErrorFit(new, original, x0, names, theta, np.sqrt(np.diag(cov))[:p_theta],
                           cov[:p_theta, :p_theta], sigma2, E0, E1, code, int(n_steps),
                           bool(converged), bool(was_unstable))
+
+
+def output_error_many(records, models, *, max_steps: int = 100, rtol: float = 1e-10,
+                      atol: float = 1e-12) -> list:
+    """`output_error(records[i], models[i])` for every pair (whole records), the
+    Levenberg-Marquardt iterations of each model structure in one compiled call (`lax.map`).
+    An entry is None where the start could not be simulated (overflow, unobservable)."""
+    from ._batch import groups, stack, unstack
+
+    prepared = []
+    for sig, model in zip(records, models):
+        try:
+            prepared.append(_prepare(sig, model, None))
+        except ValueError:
+            prepared.append(None)
+    out = [None] * len(prepared)
+    live = [i for i, p in enumerate(prepared) if p is not None]
+    for idx in groups([prepared[i][0] for i in live]):
+        idx = [live[j] for j in idx]
+        res = stack([prepared[i][0] for i in idx])
+        z, result, steps = _lm_many(res, jnp.asarray(max_steps), jnp.asarray(rtol),
+                                    jnp.asarray(atol))
+        for i, zi, ri, si in zip(idx, unstack(z), unstack(result), unstack(steps)):
+            out[i] = _finish(prepared[i][0], prepared[i][1], zi, ri, si)
+    return out
+
+
+@eqx.filter_jit
+def _lm_many(residuals, max_steps, rtol, atol):
+    return jax.lax.map(lambda res: _lm(res, jnp.zeros(res.size), max_steps, rtol, atol),
+                       residuals)
 
 
 LM_CODES = ("successful", "nonlinear_max_steps_reached", "nonlinear_divergence")

@@ -65,10 +65,12 @@ def holdout_folds(signals: Signals, estimation, holdout: float, folds: int = FOL
 
 def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
                    folds: int = FOLDS, n, N, M, h, m=None, delays=None,
-                   chunk_size: int = 8) -> HoldoutSearch:
+                   chunk_size: int = 8, records=None):
     """Search the grid once per fold with its hold-out window left out of the Gram, rank by
     the mean E over the hold-out windows, then identify the same candidates on all
-    estimation windows. Every run shares one compiled program (windows are values)."""
+    estimation windows. Every run shares one compiled program (windows are values). With
+    `records` (`Signals` of `signals`' layout) every run covers all of them in one call and
+    one `HoldoutSearch` per record is returned."""
     fold_windows, est = holdout_folds(signals, estimation, holdout, folds)
     fit0, hold0 = fold_windows[0]
     plan = plan_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score="E",
@@ -76,6 +78,7 @@ def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
                        observer_window=OBSERVER_FRACTION * (hold0[1] - hold0[0]), eta=None,
                        chunk_size=chunk_size, simulate=True)
     S = len(plan.where["segments"])
+    batch = records if records is not None else [signals]
 
     def run(windows, hold):
         segs = identification_segments(signals, list(windows))
@@ -83,17 +86,21 @@ def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
         where = {"segments": jnp.asarray(segs, dtype=jnp.int32),
                  "v_start": jnp.asarray(round((hold[0] - signals.t0) / signals.dt),
                                         dtype=jnp.int32)}
-        return run_plan(plan._replace(where=where), signals)
+        return run_plan(plan._replace(where=where), signals, records=batch)
 
-    fitted = tuple(run(fw, hw) for fw, hw in fold_windows)
-    E = np.mean([np.where(r.columns["status"] == 0, r.columns["E"], np.inf) for r in fitted],
-                axis=0)
-    E = np.where(np.isfinite(E), E, np.inf)
-    c = fitted[-1].columns
-    rank = ranking(E, c["n"] + np.sum(c["m"] + 1, axis=1), ~np.isfinite(E), None)
-    fitted = tuple(replace_fields(r, rank=rank) for r in fitted)
-    refit = replace_fields(run(est, fold_windows[-1][1]), rank=rank)
-    return HoldoutSearch(fitted, E, refit, fold_windows, est)
+    fitted = [run(fw, hw) for fw, hw in fold_windows]  # [fold][record]
+    refits = run(est, fold_windows[-1][1])
+    out = []
+    for r, refit in enumerate(refits):
+        per_fold = [f[r] for f in fitted]
+        E = np.mean([np.where(x.columns["status"] == 0, x.columns["E"], np.inf)
+                     for x in per_fold], axis=0)
+        E = np.where(np.isfinite(E), E, np.inf)
+        c = per_fold[-1].columns
+        rank = ranking(E, c["n"] + np.sum(c["m"] + 1, axis=1), ~np.isfinite(E), None)
+        out.append(HoldoutSearch(tuple(replace_fields(x, rank=rank) for x in per_fold), E,
+                                 replace_fields(refit, rank=rank), fold_windows, est))
+    return out if records is not None else out[0]
 
 
 def rank_by(res: SearchResult, key: str) -> np.ndarray:

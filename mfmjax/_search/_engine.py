@@ -15,7 +15,7 @@ from .._signals import Signals
 from .._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
 from ._grid import ChunkStatic, OrderClass, Plan
 from ._moments import moment_gram
-from ._result import SearchResult, collect
+from ._result import collect
 from ._validation import validate_candidate
 
 
@@ -128,19 +128,33 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, structs,
 chunk_jit = eqx.filter_jit(evaluate_chunk)
 
 
+@eqx.filter_jit
+def chunk_records_jit(sig: Signals, ys, us, *args):
+    """`evaluate_chunk` for records of equal layout (outputs ys (R, T), inputs us (R, T, K)),
+    one after another inside one compiled call (`lax.map`: memory of one record)."""
+    return jax.lax.map(
+        lambda yu: evaluate_chunk(eqx.tree_at(lambda s: (s.y, s.u), sig, yu), *args), (ys, us))
+
+
 def place(x: np.ndarray, sharding):
     """A global array split over the mesh (works with one or several processes)."""
     return jax.make_array_from_callback(x.shape, sharding, lambda idx: x[idx])
 
 
-def run_plan(plan: Plan, signals: Signals, progress=None) -> SearchResult:
-    """Evaluate a plan's grid on `signals` (same length and layout as the plan's record)."""
+def run_plan(plan: Plan, signals: Signals, progress=None, records=None):
+    """Evaluate a plan's grid on `signals` (same length and layout as the plan's record).
+    With `records` (a list of `Signals` of that layout, e.g. Monte Carlo realisations) every
+    chunk evaluates all of them in one compiled call; returns one `SearchResult` per record."""
     static, hd, chunk, K = plan.static, plan.hd, plan.chunk, plan.n_inputs
-    if (signals.n_samples, signals.n_inputs) != (plan.n_samples, K):
+    batch = records if records is not None else [signals]
+    if any((r.n_samples, r.n_inputs) != (plan.n_samples, K) for r in batch):
         raise ValueError("search: the signals do not match the plan's record length and inputs")
     col_nm, col_struct = plan.columns
     Cg = len(col_nm)  # candidates per (h, delays) setting
-    cols, times = {}, []
+    if records is not None:
+        ys = jnp.stack([r.y for r in records])
+        us = jnp.stack([r.u for r in records])
+    cols, times = [{} for _ in batch], []
     for c0 in range(0, len(hd), chunk):
         idx = list(range(c0, min(c0 + chunk, len(hd))))
         real = len(idx)
@@ -151,18 +165,22 @@ def run_plan(plan: Plan, signals: Signals, progress=None) -> SearchResult:
         }
         g = {k: place(v, plan.sharding) for k, v in g.items()}
         t0 = time.perf_counter()
-        res = jax.block_until_ready(
-            chunk_jit(signals.unlabelled(), static, plan.eta, g, plan.struct_arr, plan.nm,
-                      plan.where))
+        args = (static, plan.eta, g, plan.struct_arr, plan.nm, plan.where)
+        if records is None:
+            res = [jax.block_until_ready(chunk_jit(signals.unlabelled(), *args))]
+        else:
+            out = jax.block_until_ready(chunk_records_jit(signals.unlabelled(), ys, us, *args))
+            res = [jax.tree.map(lambda x, r=r: x[r], out) for r in range(len(records))]
         if jax.process_count() > 1:  # multi-host: every process gets every candidate
             from jax.experimental import multihost_utils
 
-            res = multihost_utils.process_allgather(res, tiled=True)
-        for key, val in res.items():  # straight into the preallocated columns: memory flat
-            val = np.asarray(val)[:real]
-            if key not in cols:
-                cols[key] = np.empty((len(hd) * Cg,) + val.shape[2:], val.dtype)
-            cols[key][c0 * Cg : (c0 + real) * Cg] = val.reshape((-1,) + val.shape[2:])
+            res = [multihost_utils.process_allgather(x, tiled=True) for x in res]
+        for col, rec in zip(cols, res):  # straight into the preallocated columns: memory flat
+            for key, val in rec.items():
+                val = np.asarray(val)[:real]
+                if key not in col:
+                    col[key] = np.empty((len(hd) * Cg,) + val.shape[2:], val.dtype)
+                col[key][c0 * Cg : (c0 + real) * Cg] = val.reshape((-1,) + val.shape[2:])
         del res
         times.append(time.perf_counter() - t0)
         if progress is not None:
@@ -171,7 +189,10 @@ def run_plan(plan: Plan, signals: Signals, progress=None) -> SearchResult:
     typical = float(np.median(times[1:])) if len(times) > 1 else 0.0
     t_compile, t_run = max(times[0] - typical, 0.0), sum(times) - max(times[0] - typical, 0.0)
     n_set = len(hd)
-    cols["group"] = np.repeat(np.arange(n_set), Cg) * len(plan.nm["N"]) + np.tile(col_nm, n_set)
-    cols["struct"] = np.tile(col_struct, n_set)
-    return collect(cols, plan.combos, plan.structs, signals, static, plan.score, t_compile, t_run,
-                   int(plan.where["v_start"]))
+    out = []
+    for col, rec in zip(cols, batch):
+        col["group"] = np.repeat(np.arange(n_set), Cg) * len(plan.nm["N"]) + np.tile(col_nm, n_set)
+        col["struct"] = np.tile(col_struct, n_set)
+        out.append(collect(col, plan.combos, plan.structs, rec, static, plan.score, t_compile,
+                           t_run, int(plan.where["v_start"])))
+    return out if records is not None else out[0]

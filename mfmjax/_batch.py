@@ -1,0 +1,64 @@
+"""Records of one layout as a batch (Monte Carlo realisations, repeated experiments): the
+(record, model) pairs of one model structure are stacked and mapped through one compiled
+program (`lax.map`: each record runs to its own convergence, memory of one record)."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._pytree import replace_fields
+
+
+def stack(trees):
+    """Pytrees of one structure -> one pytree with a leading batch axis."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+
+
+def unstack(tree) -> list:
+    """The inverse of `stack`."""
+    count = jax.tree.leaves(tree)[0].shape[0]
+    return [jax.tree.map(lambda x, i=i: x[i], tree) for i in range(count)]
+
+
+BATCH = 8  # pairs per mapped call: a batch runs in chunks of BATCH and single pairs
+
+
+def groups(trees) -> list[list[int]]:
+    """Indices of `trees` grouped by pytree structure (static fields included), each group cut
+    into chunks of `BATCH` and single pairs: a batch's group sizes vary with the data (how
+    many records chose a structure) and each size would be a new program; with two sizes a
+    structure compiles at most two."""
+    out: dict = {}
+    for i, t in enumerate(trees):
+        out.setdefault(jax.tree.structure(t), []).append(i)
+    chunks = []
+    for idx in out.values():
+        full = len(idx) // BATCH * BATCH
+        chunks += [idx[c : c + BATCH] for c in range(0, full, BATCH)] + [[i] for i in idx[full:]]
+    return chunks
+
+
+@eqx.filter_jit
+def _mapped(fn, kw, sig, ys, us, models):
+    def one(args):
+        y, u, model = args
+        return fn(eqx.tree_at(lambda s: (s.y, s.u), sig, (y, u)), model, **kw)
+
+    return jax.lax.map(one, (ys, us, models))
+
+
+def map_pairs(fn, records, models, **kw) -> list:
+    """`fn(records[i], models[i], **kw)` for every pair, one compiled call per model
+    structure. `records`: `Signals` of one layout; `kw` are static (hashable). The models'
+    labels and modulating functions are dropped (they are not used by `fn`)."""
+    models = [replace_fields(m.unlabelled(), mf=None) for m in models]
+    out = [None] * len(models)
+    for idx in groups(models):
+        sig = records[idx[0]].unlabelled()
+        res = _mapped(fn, kw, sig, jnp.stack([records[i].y for i in idx]),
+                      jnp.stack([records[i].u for i in idx]), stack([models[i] for i in idx]))
+        for i, r in zip(idx, unstack(res)):
+            out[i] = r
+    return out
