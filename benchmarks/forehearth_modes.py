@@ -14,6 +14,10 @@ stated) and improved mode on both experiments for seeds 0..seeds-1, and prints
   the first seed; a program first met on a later seed still compiles inside its timing);
 - the input-1 dead time in use after each operating point against the simulator's true
   transport delay (seed 0);
+- the grey-box transport delay (`mfmjax._demo.transport_delay_estimate`, the data before each
+  time only) against the true delay: at each accepted model's start (improved mode, every
+  seed) and at the end of each pull plateau (the last interval end before the next pull
+  change; independent of the mode);
 - with --ablation: improved mode with each change left out, one at a time (seed-mean MSE).
 
 Saves benchmarks/results/forehearth_modes.json.
@@ -28,8 +32,10 @@ import time
 
 import numpy as np
 
-from mfmjax._demo import PAPER_MSE, delay_table, run_experiment
+from mfmjax._demo import PAPER_MSE, delay_table, run_experiment, transport_delay_estimate
 from mfmjax._online import IMPROVEMENTS
+from mfmjax.datasets import forehearth
+from mfmjax.datasets._forehearth import _EXPERIMENTS
 
 TODAY = {1: 1.095647457093332, 2: 0.6043796413584612}  # paper mode, seed 0, before issue 17
 
@@ -39,7 +45,7 @@ def run(mode: str, seeds, **kw) -> dict:
     for ex in (1, 2):  # warm: compile outside the timings (seed 0 of both experiments)
         run_experiment(ex, seed=seeds[0], mode=mode, **kw)
     for ex in (1, 2):
-        mse, n_models, lat, delays = [], [], [], []
+        mse, n_models, lat, delays, transport = [], [], [], [], []
         for seed in seeds:
             r = run_experiment(ex, seed=seed, mode=mode, **kw)
             print(f"  {mode} {kw} experiment {ex} seed {seed}: MSE {r['ident'].mse():.4f}", flush=True)
@@ -47,12 +53,36 @@ def run(mode: str, seeds, **kw) -> dict:
             mse.append(ident.mse())
             n_models.append(len(ident.models))
             lat += list(np.asarray(r["update_s"]) * 1e3)
+            rows = delay_table(ident.models, r["data"], guess=r["delay"])
+            transport += [{"seed": seed, "model": row["model"], "from": row["sim_start"],
+                           "transport": row["transport"], "true_delay": row["true_delay"],
+                           "error": row["transport"] - row["true_delay"]} for row in rows]
             if seed == seeds[0]:
-                delays = delay_table(ident.models, r["data"])
+                delays = rows
         out[ex] = {"mse": mse, "mean": float(np.mean(mse)), "std": float(np.std(mse)),
                    "min": float(np.min(mse)), "max": float(np.max(mse)), "models": n_models,
                    "latency_ms_median": float(np.median(lat)),
-                   "latency_ms_p99": float(np.percentile(lat, 99)), "delays_seed0": delays}
+                   "latency_ms_p99": float(np.percentile(lat, 99)), "delays_seed0": delays,
+                   "transport_per_model": transport}
+    return out
+
+
+def plateau_ends(seeds) -> dict:
+    """Grey-box transport delay minus the true delay at the last interval end (250 s) of each
+    pull plateau, per experiment and seed (s)."""
+    out = {}
+    for ex in (1, 2):
+        pull = _EXPERIMENTS[ex]["pull"]
+        ends = [p[0] for i, p in enumerate(pull[1:], 1) if pull[i - 1][1] == p[1]]
+        for seed in seeds:
+            d = forehearth(ex, seed=seed)
+            guess = float(np.round(d["delay"][0]))
+            row = {}
+            for e in ends:
+                end = e // 250 * 250
+                est = transport_delay_estimate(d["y"], d["u"], end, guess)["delay"]
+                row[e] = est - float(d["delay"][end - 1])
+            out[f"{ex}/{seed}"] = row
     return out
 
 
@@ -74,6 +104,7 @@ def main():
             res["ablation"][f"without {x}"] = {ex: r[ex]["mean"] for ex in (1, 2)}
             print(f"improved without {x}: mean MSE {r[1]['mean']:.4f} / {r[2]['mean']:.4f}",
                   flush=True)
+    res["transport_plateau_ends"] = plateau_ends(seeds)
     res["wall_s"] = time.perf_counter() - t0
     print(f"\nforehearth, {len(seeds)} seeds; prediction MSE in degC^2 (mean, std, min-max)")
     print(f"{'':>9} {'experiment 1':>34} {'experiment 2':>34}")
@@ -92,7 +123,21 @@ def main():
         for row in res["modes"]["improved"][ex]["delays_seed0"]:
             print(f"  exp {ex} model {row['model']:>2} {row['operating_point']} from "
                   f"{row['sim_start']:>5.0f} s: {row['delay']:>5.0f} s, true "
-                  f"{row['true_delay']:>4.0f} s (error {row['delay'] - row['true_delay']:+.0f} s)")
+                  f"{row['true_delay']:>4.0f} s (error {row['delay'] - row['true_delay']:+.0f} s); "
+                  f"grey-box transport delay {row['transport']:>5.0f} s "
+                  f"(error {row['transport'] - row['true_delay']:+.0f} s)")
+    print("\ngrey-box transport delay minus true delay at each pull plateau's end (s)")
+    for key, row in res["transport_plateau_ends"].items():
+        cells = " ".join(f"{e}: {'-' if not np.isfinite(v) else f'{v:+.0f}'}" for e, v in row.items())
+        print(f"  exp/seed {key}: {cells}")
+    for ex in (1, 2):
+        rows = res["modes"]["improved"][ex]["transport_per_model"]
+        err = np.abs([r["error"] for r in rows])
+        ok = err[np.isfinite(err)]
+        print(f"  exp {ex}, at each improved-mode model's start ({err.size} models, "
+              f"{err.size - ok.size} undetermined): |error| median {np.median(ok):.1f} s, "
+              f"90th percentile {np.percentile(ok, 90):.1f} s, max {ok.max():.1f} s, within 10 s "
+              f"{np.mean(ok <= 10):.0%}")
     os.makedirs(os.path.join(os.path.dirname(__file__), "results"), exist_ok=True)
     path = os.path.join(os.path.dirname(__file__), "results", "forehearth_modes.json")
     from mfmjax._persist import json_safe

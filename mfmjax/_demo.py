@@ -92,25 +92,129 @@ def residence_time(record: dict, k: int = 0) -> float:
     return record["delays"][k] + a[1] / a[0] - (b[1] / b[0] if len(b) > 1 else 0.0)
 
 
-def delay_table(models: list[dict], data: dict) -> list[dict]:
+SENSOR_LAG = 20.0  # s, the zone thermocouple's lag (a sensor datasheet value, taken as known)
+TRANSIT_PECLET = (25.0, 40.0, 60.0, 100.0, 160.0)  # grid of the transit kernel's Peclet number
+TRANSIT_CROWN = (150.0, 250.0, 400.0, 600.0, 900.0)  # s, grid of the crown lag (input 2 path)
+TRANSIT_WINDOW = 2500.0  # s of output fitted (the newest), at least TRANSIT_MIN_WINDOW
+TRANSIT_MIN_WINDOW = 1500.0
+TRANSIT_TREND = 4  # Legendre polynomials over the window: the unmeasured pull rate's effect
+
+
+def transit_kernel(theta: float, peclet: float, n: int, dt: float = 1.0) -> np.ndarray:
+    r"""Advection-dispersion transit-time density (inverse Gaussian: mean `theta` s, variance
+    $2\theta^2/Pe$), sampled at the centres of `n` intervals of `dt` and normalised to sum 1."""
+    tau = (np.arange(n) + 0.5) * dt
+    lam = theta * peclet / 2.0
+    k = np.sqrt(lam / (2 * np.pi * tau**3)) * np.exp(-lam * (tau - theta) ** 2
+                                                     / (2 * theta**2 * tau))
+    return k / k.sum()
+
+
+def _lag(x: np.ndarray, T: float, dt: float) -> np.ndarray:
+    from scipy.signal import lfilter
+
+    a = math.exp(-dt / T)
+    return lfilter([1 - a], [1, -a], x - x[0]) + x[0]
+
+
+def transport_delay_estimate(y, u, end: int, guess: float, dt: float = 1.0) -> dict:
+    r"""Grey-box estimate of input 1's transport delay (the glass's mean transit time, s) from
+    the samples before index `end` only (causal), searched within `guess` +-50 %.
+
+    Model of the zone (the forehearth's physics, its constants unknown): the output is
+    $c + \text{trend} + g_1\,S\,K_{\theta,Pe}\,u_1 + g_2\,S\,C_{T_c}\,R_{\theta,Pe}\,u_2$, where
+    $K$ is the advection-dispersion transit-time density (inverse Gaussian, mean $\theta$),
+    $R = 1 - \int K$ its survival function (the burners heat the glass all along the zone, so the
+    glass at the thermocouple has been heated for its whole transit), $C$ the crown's
+    first-order lag $T_c$, $S$ the thermocouple's known 20 s lag, and the trend Legendre
+    polynomials of degree < 4 over the window (the unmeasured pull rate). $\theta$ (5 s grid,
+    then 1 s), $Pe$ and $T_c$ on grids; $c$, trend, $g_1$, $g_2$ by least squares on the newest
+    2500 s (1500 s at least). $\theta$ is the first moment of the transport part of the input-1
+    path, the sensor lag excluded: the quantity the simulator calls its delay (x/v).
+    **Returns:** {"delay", "peclet", "crown", "gain1", "window"}; delay NaN with too little
+    history or when the best delay of the 5 s grid is one of its ends (no interior minimum)."""
+    fn = "transport_delay_estimate()"
+    if not (isinstance(guess, (int, float)) and math.isfinite(guess) and guess > 0):
+        raise ValueError(f"{fn}: guess must be a finite delay > 0 s (got {guess!r})")
+    if not 0 < end <= len(y):
+        raise ValueError(f"{fn}: end must be in 1..len(y)={len(y)} (got {end}); it is the "
+                         "index after the newest sample used")
+    lo, hi = 0.5 * guess, 1.5 * guess
+    hist = math.ceil(2.5 * hi / dt)  # the kernel's reach (its tail beyond is < 1e-3 at Pe >= 25)
+    w = min(round(TRANSIT_WINDOW / dt), end - hist)
+    if w < round(TRANSIT_MIN_WINDOW / dt):
+        return {"delay": math.nan, "peclet": math.nan, "crown": math.nan, "gain1": math.nan,
+                "window": None}
+    seg = slice(end - w - hist, end)
+    u = np.asarray(u, dtype=np.float64)
+    u1 = _lag(u[seg, 0], SENSOR_LAG, dt)
+    u2 = _lag(u[seg, 1], SENSOR_LAG, dt)
+    yw = np.asarray(y, dtype=np.float64)[end - w : end]
+    tt = np.linspace(-1.0, 1.0, w)
+    Q, _ = np.linalg.qr(np.polynomial.legendre.legvander(tt, TRANSIT_TREND - 1))
+
+    def proj(x):
+        return x - Q @ (Q.T @ x)
+
+    yr = proj(yw)
+    nf = 1 << math.ceil(math.log2(w + 2 * hist))
+    F1 = np.fft.rfft(u1, nf)
+    F2 = [np.fft.rfft(_lag(u2, T, dt), nf) for T in TRANSIT_CROWN]
+
+    def fit(theta, pe):  # (sse, crown, g1) of the best crown lag
+        k = transit_kernel(theta, pe, hist, dt)
+        x1 = proj(np.fft.irfft(F1 * np.fft.rfft(k, nf), nf)[hist : hist + w])
+        S = np.fft.rfft(1.0 - np.cumsum(k), nf) * dt
+        best = (math.inf, math.nan, math.nan)
+        for Tc, F in zip(TRANSIT_CROWN, F2):
+            x2 = proj(np.fft.irfft(F * S, nf)[hist : hist + w])
+            G = np.array([[x1 @ x1, x1 @ x2], [x1 @ x2, x2 @ x2]])
+            r = np.array([x1 @ yr, x2 @ yr])
+            c = np.linalg.lstsq(G, r, rcond=None)[0]
+            best = min(best, (float(yr @ yr - c @ r), Tc, float(c[0])), key=lambda v: v[0])
+        return best
+
+    def search(thetas, pes):
+        return min(((fit(th, pe), th, pe) for th in thetas for pe in pes), key=lambda v: v[0][0])
+
+    grid = np.arange(lo, hi + 1e-9, 5.0)
+    _, th, pe = search(grid, TRANSIT_PECLET)
+    if th in (grid[0], grid[-1]):  # no interior minimum: the data do not determine the delay
+        return {"delay": math.nan, "peclet": pe, "crown": math.nan, "gain1": math.nan,
+                "window": [float((end - w) * dt), float(end * dt)]}
+    (_, Tc, g1), th, pe = search(np.arange(max(lo, th - 4), min(hi, th + 4) + 1e-9, 1.0), (pe,))
+    return {"delay": float(th), "peclet": pe, "crown": Tc, "gain1": g1,
+            "window": [float((end - w) * dt), float(end * dt)]}
+
+
+def delay_table(models: list[dict], data: dict, guess: float | None = None) -> list[dict]:
     """Per accepted model: the operating point, when it starts predicting, the input-1 dead time
-    in use, its residence time and the simulator's true transport delay then (s)."""
+    in use, its residence time, the grey-box transport delay estimated from the data before
+    that time (`transport_delay_estimate` around `guess`; NaN without `guess` or `y`, `u`) and
+    the simulator's true transport delay then (s)."""
     rows = []
     for r in models:
         true = float(np.interp(r["sim_start"], data["t"], data["delay"]))
+        transport = math.nan
+        if guess is not None and "y" in data:
+            end = int(np.searchsorted(data["t"], r["sim_start"], side="right"))
+            dt = float(data["t"][1] - data["t"][0])
+            transport = transport_delay_estimate(data["y"], data["u"], end, guess, dt)["delay"]
         rows.append({"model": r["model"], "operating_point": r["operating_point"],
                      "sim_start": r["sim_start"], "delay": r["delays"][0],
-                     "residence": residence_time(r, 0), "true_delay": true})
+                     "residence": residence_time(r, 0), "transport": transport,
+                     "true_delay": true})
     return rows
 
 
 def format_delay_table(rows: list[dict]) -> str:
     lines = [f"{'Model':>8} {'Op. point':>9} {'from [s]':>9} {'dead time [s]':>14} "
-             f"{'residence [s]':>14} {'true delay [s]':>15}"]
+             f"{'residence [s]':>14} {'transport [s]':>14} {'true delay [s]':>15}"]
     for r in rows:
         res = "-" if not math.isfinite(r["residence"]) else f"{r['residence']:.0f}"
+        tr = "-" if not math.isfinite(r.get("transport", math.nan)) else f"{r['transport']:.0f}"
         lines.append(f"{r['model']:>8} {r['operating_point']:>9} {r['sim_start']:>9.0f} "
-                     f"{r['delay']:>14.0f} {res:>14} {r['true_delay']:>15.0f}")
+                     f"{r['delay']:>14.0f} {res:>14} {tr:>14} {r['true_delay']:>15.0f}")
     return "\n".join(lines)
 
 
@@ -145,7 +249,7 @@ def demo(out: str = "mfmjax-demo", horizon: float | None = None, mode: str = "im
               f"{data['delay'].max():.0f} s (identifier starts from {r['delay']:.0f} s"
               f"{', tracked' if tracked else ', kept'})")
         print(paper_tables(ident.models, end))
-        delays = delay_table(ident.models, data)
+        delays = delay_table(ident.models, data, guess=r["delay"])
         print("\n" + format_delay_table(delays))
         shown = f"{mse:.4f} degC^2" if math.isfinite(mse) else "undefined (no prediction yet)"
         print(f"mean square prediction error: {shown} (paper: {PAPER_MSE[ex]})\n")
