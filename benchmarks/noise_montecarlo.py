@@ -15,7 +15,13 @@ from the same MFM estimate. Per method: largest normalised bias |mean - true| / 
 parameters, std / CRB (min, median, max; `cramer_rao` at the truth and noise level), failures
 (non-finite, not converged, any parameter more than 10 CRB std off), ms per fit warm, compile
 s, ratios to the NumPy SRIVC peer; then the whole batch of realisations through `jax.vmap(srivc)`
-(one compiled call) against as many sequential NumPy SRIVC fits. Saves
+(one compiled call) against as many sequential NumPy SRIVC fits; then (issue 14 item 4)
+`mfmjax.estimate` with its default selection and stages on the whole batch of records (a list
+of `Signals`: every stage one compiled call per structure), over the grid `estimate_grid`
+(orders n-1..n, numerator orders m_k..m_k+1 per input, the system's N and M, h and 0.75 h):
+its structure choice (records that did not choose the true structure count as failures), bias,
+std / CRB, failures, and time per record warm (the batch run twice; the first is compile +
+run) against 10 records one at a time. `--no-estimate` skips it. Saves
 benchmarks/results/noise_montecarlo.json.
 """
 
@@ -78,7 +84,42 @@ def _timed(fn):
     return out, time.perf_counter() - a
 
 
-def run_system(name, spec, snr_db, runs):
+def estimate_grid(spec):
+    """The grid `estimate` searches in this benchmark: around the true structure and MF."""
+    st, mf = spec["structure"], spec["mf"]
+    return dict(n=(st.n - 1, st.n), m=[[mk, mk + 1] for mk in st.m], N=(float(mf.N),),
+                M=(float(mf.M),), h=(0.75 * float(mf.h), float(mf.h)))
+
+
+def run_estimate(spec, true, sigs, crb, truth):
+    """`mfmjax.estimate` (default selection and stages) on the batch of records."""
+    grid = estimate_grid(spec)
+    ests, t_first = _timed(lambda: mfmjax.estimate(sigs, **grid))
+    ests, t_warm = _timed(lambda: mfmjax.estimate(sigs, **grid))
+    few = sigs[:10]
+    for sig in few:  # the one-record programs compiled, then timed
+        mfmjax.estimate(sig, **grid)
+    _, t_seq = _timed(lambda: [mfmjax.estimate(sig, **grid) for sig in few])
+    right = [e.model.n == true.n and tuple(e.model.m) == tuple(true.m) for e in ests]
+    x = np.asarray([_params(e.model) for e, ok in zip(ests, right) if ok])
+    finite = np.all(np.isfinite(x), axis=1)
+    conv = np.asarray([e.converged for e, ok in zip(ests, right) if ok])
+    off = ~finite | np.any(np.abs(x - truth) > 10 * crb, axis=1)
+    ratio = x[finite].std(0, ddof=1) / crb
+    methods = {}
+    for e in ests:
+        methods[e.method] = methods.get(e.method, 0) + 1
+    return {"grid": {k: list(np.ravel(v).tolist()) if k != "m" else v for k, v in grid.items()},
+            "wrong_structure": int(len(ests) - sum(right)), "methods": methods,
+            "bias": (np.abs(x[finite].mean(0) - truth) / np.abs(truth)).tolist(),
+            "std_over_crb": [float(ratio.min()), float(np.median(ratio)), float(ratio.max())],
+            "nonfinite": int(np.sum(~finite)), "not_converged": int(np.sum(~conv)),
+            "off_10crb": int(np.sum(off)), "batch_s_first": t_first, "batch_s_warm": t_warm,
+            "ms_per_record_batch": 1e3 * t_warm / len(sigs),
+            "ms_per_record_one_at_a_time": 1e3 * t_seq / len(few)}
+
+
+def run_system(name, spec, snr_db, runs, with_estimate=True):
     true = spec["model"]()
     if spec.get("prbs"):
         clean = _prbs_experiment(true, spec["dt"], spec["T"], spec["prbs"])
@@ -145,6 +186,9 @@ def run_system(name, spec, snr_db, runs):
     out["batch"] = {"records": runs, "vmap_s": t_batch, "vmap_compile_s": t_first - t_batch,
                     "numpy_sequential_s": t_seq, "speedup": t_seq / t_batch,
                     "max_rel_diff_vs_single": same}
+    if with_estimate:
+        out["estimate"] = run_estimate(spec, true, sigs, crb, truth)
+        out["estimate"]["vs_numpy_srivc_sequential"] = t_seq / out["estimate"]["batch_s_warm"]
     return out
 
 
@@ -170,6 +214,17 @@ def print_case(r):
           f"{b['vmap_compile_s']:.1f} s) vs {b['numpy_sequential_s']:.2f} s sequential NumPy "
           f"SRIVC: {b['speedup']:.1f}x (max |batched - single| / |true| = "
           f"{b['max_rel_diff_vs_single']:.1e})")
+    if "estimate" in r:
+        e = r["estimate"]
+        lo, med, hi = e["std_over_crb"]
+        print(f"estimate (defaults) on the batch: methods {e['methods']}, wrong structure "
+              f"{e['wrong_structure']}, bias {max(e['bias']):.2e} ({max(e['bias']) / max(peer['bias']):.2f}"
+              f"x SRIVC np), std/CRB {lo:.2f}/{med:.2f}/{hi:.2f}, nonfinite {e['nonfinite']}, "
+              f"not converged {e['not_converged']}, >10 CRB {e['off_10crb']}")
+        print(f"  {e['ms_per_record_batch']:.0f} ms per record in the batch (warm; first call "
+              f"{e['batch_s_first']:.1f} s), {e['ms_per_record_one_at_a_time']:.0f} ms one at a "
+              f"time; the batch vs sequential NumPy SRIVC fits (known structure): "
+              f"{e['vs_numpy_srivc_sequential']:.2f}x")
 
 
 def main():
@@ -177,6 +232,7 @@ def main():
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--runs", type=int)
     ap.add_argument("--systems", help="comma-separated names (default: all)")
+    ap.add_argument("--no-estimate", action="store_true", help="skip the batched estimate")
     args = ap.parse_args()
     runs = args.runs or (10 if args.quick else 100)
     names = args.systems.split(",") if args.systems else list(SYSTEMS)
@@ -185,7 +241,7 @@ def main():
     out = []
     for name in names:
         for snr in (20.0, 10.0):
-            r = run_system(name, SYSTEMS[name], snr, runs)
+            r = run_system(name, SYSTEMS[name], snr, runs, not args.no_estimate)
             out.append(r)
             print_case(r)
     total = time.perf_counter() - t0
