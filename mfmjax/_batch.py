@@ -50,15 +50,24 @@ def _mapped(fn, kw, sig, ys, us, models):
 
 
 def map_pairs(fn, records, models, **kw) -> list:
-    """`fn(records[i], models[i], **kw)` for every pair, one compiled call per model
-    structure. `records`: `Signals` of one layout; `kw` are static (hashable). The models'
-    labels and modulating functions are dropped (they are not used by `fn`)."""
+    """`fn(records[i], models[i], **kw)` for every pair: each chunk of `BATCH` pairs of one
+    model structure in one compiled call, a single pair by `fn` itself (the program a direct
+    call uses). `records`: `Signals` of one layout; `kw` are static (hashable). The models'
+    labels and modulating functions are dropped (`fn` does not use them). An entry is None
+    where `fn` raised ValueError (e.g. an overflowing simulation in eager mode)."""
     models = [replace_fields(m.unlabelled(), mf=None) for m in models]
     out = [None] * len(models)
     for idx in groups(models):
-        sig = records[idx[0]].unlabelled()
-        res = _mapped(fn, kw, sig, jnp.stack([records[i].y for i in idx]),
-                      jnp.stack([records[i].u for i in idx]), stack([models[i] for i in idx]))
+        try:
+            if len(idx) == 1:
+                out[idx[0]] = fn(records[idx[0]], models[idx[0]], **kw)
+                continue
+            sig = records[idx[0]].unlabelled()
+            res = _mapped(fn, kw, sig, jnp.stack([records[i].y for i in idx]),
+                          jnp.stack([records[i].u for i in idx]),
+                          stack([models[i] for i in idx]))
+        except ValueError:
+            continue
         for i, r in zip(idx, unstack(res)):
             out[i] = r
     return out

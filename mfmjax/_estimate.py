@@ -11,6 +11,7 @@ equation error is biased under output noise; SRIVC removes that bias at a few ms
 from __future__ import annotations
 
 import warnings
+from functools import partial
 
 import equinox as eqx
 import numpy as np
@@ -221,7 +222,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
             obs = map_pairs(_observed, [records[r] for r, _ in pairs],
                             [ms[f] for _, ms in pairs], window=hold, observer_window=ob)
             for k, ((r, _), o) in enumerate(zip(pairs, obs)):
-                if int(o.status) & (Status.OVERFLOW | Status.UNOBSERVABLE):
+                if o is None or int(o.status) & (Status.OVERFLOW | Status.UNOBSERVABLE):
                     E[k, f], fit[k, f] = np.inf, np.nan  # not usable on the hold-out
                 else:
                     E[k, f], fit[k, f] = float(o.E), float(fit_percent(y_hold[r], o.y_sim))
@@ -272,13 +273,15 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
     seeds = [stabilised(s) for s in starts]
     methods = [b[3] for b in best]
     sv_rec = [r for r in range(R) if methods[r] not in ("mfm", "output error")]
-    fits = dict(zip(sv_rec, _staged_many(srivc, [est_sigs[r] for r in sv_rec],
-                                         [seeds[r][0] for r in sv_rec], max_iter=max_iter,
-                                         tol=tol)))
     oe_rec = [r for r in range(R) if methods[r].endswith("output error")]
-    oes = dict(zip(oe_rec, _staged_many(
-        output_error, [est_sigs[r] for r in oe_rec],
-        [fits[r].model if fits.get(r) is not None else seeds[r][0] for r in oe_rec])))
+    with warnings.catch_warnings():  # `estimate` warns itself for a stage that did not converge
+        warnings.simplefilter("ignore")
+        fits = dict(zip(sv_rec, _staged_many(srivc, [est_sigs[r] for r in sv_rec],
+                                             [seeds[r][0] for r in sv_rec], max_iter=max_iter,
+                                             tol=tol)))
+        oes = dict(zip(oe_rec, _staged_many(
+            output_error, [est_sigs[r] for r in oe_rec],
+            [fits[r].model if fits.get(r) is not None else seeds[r][0] for r in oe_rec])))
     out = []
     for r in range(R):
         tr, b, method = tried[r], best[r], methods[r]
@@ -351,13 +354,8 @@ def _staged_many(stage, records, models, **kw) -> list:
         starts.append(model)
     if not sigs:
         return []
-    if stage is output_error:
-        outs = output_error_many(sigs, starts, **kw)
-    else:
-        try:
-            outs = map_pairs(stage, sigs, starts, **kw)
-        except ValueError:
-            outs = [None] * len(sigs)
+    outs = (output_error_many if stage is output_error else partial(map_pairs, stage))(
+        sigs, starts, **kw)
     return [out if out is None or not model.has_offset else _shifted_back(out, ybar, ubar)
             for out, model, (ybar, ubar) in zip(outs, models, shifted)]
 
@@ -412,8 +410,10 @@ def _from_search(records, results, *, polish, max_iter, tol) -> list:
     if any(f is None for f in fits):
         raise ValueError("estimate(): SRIVC could not simulate the search's winner on this "
                          "record; try selection='holdout' or a smaller grid")
-    oes = _staged_many(output_error, records, [f.model for f in fits]) if polish \
-        else [None] * len(fits)
+    with warnings.catch_warnings():  # `estimate` warns itself for a stage that did not converge
+        warnings.simplefilter("ignore")
+        oes = _staged_many(output_error, records, [f.model for f in fits]) if polish \
+            else [None] * len(fits)
     out = []
     for rec, res, start, (_, unstable), fit, oe in zip(records, results, starts, seeds, fits,
                                                         oes):

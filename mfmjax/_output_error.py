@@ -235,7 +235,8 @@ def _finish(residual, meta, z, result, n_steps) -> OutputErrorFit:
 def output_error_many(records, models, *, max_steps: int = 100, rtol: float = 1e-10,
                       atol: float = 1e-12) -> list:
     """`output_error(records[i], models[i])` for every pair (whole records), the
-    Levenberg-Marquardt iterations of each model structure in one compiled call (`lax.map`).
+    Levenberg-Marquardt iterations of each chunk of pairs of one model structure in one
+    compiled call (`lax.map`, chunks as in `_batch.groups`).
     An entry is None where the start could not be simulated (overflow, unobservable)."""
     from ._batch import groups, stack, unstack
 
@@ -249,11 +250,14 @@ def output_error_many(records, models, *, max_steps: int = 100, rtol: float = 1e
     live = [i for i, p in enumerate(prepared) if p is not None]
     for idx in groups([prepared[i][0] for i in live]):
         idx = [live[j] for j in idx]
-        res = stack([prepared[i][0] for i in idx])
-        z, result, steps = _lm_many(res, jnp.asarray(max_steps), jnp.asarray(rtol),
-                                    jnp.asarray(atol))
-        for i, zi, ri, si in zip(idx, unstack(z), unstack(result), unstack(steps)):
-            out[i] = _finish(prepared[i][0], prepared[i][1], zi, ri, si)
+        limits = jnp.asarray(max_steps), jnp.asarray(rtol), jnp.asarray(atol)
+        if len(idx) == 1:  # a single pair: the program `output_error` uses
+            res = prepared[idx[0]][0]
+            solved = [_lm(res, jnp.zeros(res.size), *limits)]
+        else:
+            solved = zip(*map(unstack, _lm_many(stack([prepared[i][0] for i in idx]), *limits)))
+        for i, (z, result, steps) in zip(idx, solved):
+            out[i] = _finish(prepared[i][0], prepared[i][1], z, result, steps)
     return out
 
 

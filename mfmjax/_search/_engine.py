@@ -151,7 +151,7 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None):
         raise ValueError("search: the signals do not match the plan's record length and inputs")
     col_nm, col_struct = plan.columns
     Cg = len(col_nm)  # candidates per (h, delays) setting
-    if records is not None:
+    if len(batch) > 1:
         ys = jnp.stack([r.y for r in records])
         us = jnp.stack([r.u for r in records])
     cols, times = [{} for _ in batch], []
@@ -166,8 +166,8 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None):
         g = {k: place(v, plan.sharding) for k, v in g.items()}
         t0 = time.perf_counter()
         args = (static, plan.eta, g, plan.struct_arr, plan.nm, plan.where)
-        if records is None:
-            res = [jax.block_until_ready(chunk_jit(signals.unlabelled(), *args))]
+        if len(batch) == 1:  # one record: the program `search` uses
+            res = [jax.block_until_ready(chunk_jit(batch[0].unlabelled(), *args))]
         else:
             out = jax.block_until_ready(chunk_records_jit(signals.unlabelled(), ys, us, *args))
             res = [jax.tree.map(lambda x, r=r: x[r], out) for r in range(len(records))]
