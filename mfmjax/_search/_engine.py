@@ -169,7 +169,7 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None):
         if len(batch) == 1:  # one record: the program `search` uses
             res = [jax.block_until_ready(chunk_jit(batch[0].unlabelled(), *args))]
         else:
-            out = jax.block_until_ready(chunk_records_jit(signals.unlabelled(), ys, us, *args))
+            out = jax.device_get(chunk_records_jit(signals.unlabelled(), ys, us, *args))
             res = [jax.tree.map(lambda x, r=r: x[r], out) for r in range(len(records))]
         if jax.process_count() > 1:  # multi-host: every process gets every candidate
             from jax.experimental import multihost_utils
