@@ -99,7 +99,8 @@ def estimate(
       E times Akaike's FPE factor $(1 + 2k/N_h)$ (k free parameters, $N_h$ hold-out samples;
       `parsimonious`), so a structure nesting a smaller one must predict measurably better.
       Where the winner's SRIVC does not converge on all estimation data, the next-ranked SRIVC
-      candidate that converges is returned (up to `FALLBACKS` tries; said in `notes`). Each
+      candidate that converges is returned (up to `FALLBACKS` tries), else output error from
+      SRIVC's best iterate (said in `notes`). Each
       stage's hold-out fit is in `holdout`. `polish=True`/`False` forces the polish.
     - `folds=2` holds out the first third too (fitted on the last two thirds): on plant data
       it chose better (benchmarks/real_data.py uses it), but SRIVC's filters start from rest,
@@ -306,6 +307,14 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
                                "is returned")
                     best[r], starts[r], seeds[r], fits[r] = ranked[r][attempt], \
                         sels[r].refit.best(ranked[r][attempt][2]), a, fit
+        for r in sv_rec:  # none converged: output error from SRIVC's best iterate
+            if methods[r] == "srivc" and fits[r] is not None and not fits[r].converged:
+                methods[r] = "srivc + output error"
+                oe_rec.append(r)
+                fell[r] = (f"SRIVC did not converge on all estimation data "
+                           f"({fits[r].describe()}), nor did the next {FALLBACKS} candidates "
+                           "of the hold-out ranking: output error from its best iterate is "
+                           "returned")
         oes = dict(zip(oe_rec, _staged_many(
             output_error, [est_sigs[r] for r in oe_rec],
             [fits[r].model if fits.get(r) is not None else seeds[r][0] for r in oe_rec])))

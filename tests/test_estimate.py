@@ -155,3 +155,20 @@ def test_estimate_parsimony_keeps_the_true_structure(monkeypatch):
     monkeypatch.setattr(est_mod, "parsimonious", lambda E, model, n_hold: E)
     raw = [(e.model.n, e.model.m) for e in mfmjax.estimate(records, **grid)]
     assert raw == [(2, (1,))] * 3, raw
+
+
+def test_estimate_recovers_when_srivc_does_not_converge(noisy):
+    """SRIVC capped at one iteration cannot meet its tolerance, on the winner nor on the
+    fallback candidates: `estimate` returns output error from SRIVC's best iterate, converged,
+    and says so in `notes` and `summary()` (never NOT CONVERGED while a stage converges)."""
+    import warnings
+
+    sig, _ = noisy
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a converged result must not warn
+        est = mfmjax.estimate(sig, max_iter=1, **GRID)
+    assert est.method == "srivc + output error" and est.converged
+    assert est.srivc is not None and not est.srivc.converged
+    assert est.output_error is not None and est.names == est.output_error.names
+    assert any("output error from its best iterate" in note for note in est.notes)
+    assert "NOT CONVERGED" not in est.summary()
