@@ -100,8 +100,8 @@ def estimate(
       `parsimonious`), so a structure nesting a smaller one must predict measurably better.
       Where the winner's SRIVC does not converge on all estimation data, the next-ranked SRIVC
       candidate that converges is returned (up to `FALLBACKS` tries), else output error from
-      SRIVC's best iterate (said in `notes`). Each
-      stage's hold-out fit is in `holdout`. `polish=True`/`False` forces the polish.
+      SRIVC's best iterate (said in `notes`). Each stage's hold-out fit is in `holdout`.
+      `polish=True`/`False` forces the polish.
     - `folds=2` holds out the first third too (fitted on the last two thirds): on plant data
       it chose better (benchmarks/real_data.py uses it), but SRIVC's filters start from rest,
       so on a fit part that starts mid-record SRIVC is penalised by its start-up transient;
