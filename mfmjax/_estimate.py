@@ -100,8 +100,8 @@ def estimate(
       `parsimonious`), so a structure nesting a smaller one must predict measurably better.
       Where the winner's SRIVC does not converge on all estimation data, the next-ranked SRIVC
       candidate that converges is returned (up to `FALLBACKS` tries), else output error from
-      SRIVC's best iterate (said in `notes`). Each stage's hold-out fit is in `holdout`.
-      `polish=True`/`False` forces the polish.
+      SRIVC's best iterate where it converges, else that iterate (said in `notes`). Each
+      stage's hold-out fit is in `holdout`. `polish=True`/`False` forces the polish.
     - `folds=2` holds out the first third too (fitted on the last two thirds): on plant data
       it chose better (benchmarks/real_data.py uses it), but SRIVC's filters start from rest,
       so on a fit part that starts mid-record SRIVC is penalised by its start-up transient;
@@ -318,6 +318,12 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
         oes = dict(zip(oe_rec, _staged_many(
             output_error, [est_sigs[r] for r in oe_rec],
             [fits[r].model if fits.get(r) is not None else seeds[r][0] for r in oe_rec])))
+        for r in [r for r in fell if methods[r] == "srivc + output error"]:
+            if oes[r] is None or not oes[r].converged:  # no better: SRIVC's best iterate
+                methods[r] = "srivc"
+                del oes[r]
+                fell[r] += ("; output error did not converge either, so SRIVC's best iterate "
+                            "is returned")
     out = []
     for r in range(R):
         tr, b, method = tried[r], best[r], methods[r]
