@@ -172,3 +172,27 @@ def test_estimate_recovers_when_srivc_does_not_converge(noisy):
     assert est.output_error is not None and est.names == est.output_error.names
     assert any("output error from its best iterate" in note for note in est.notes)
     assert "NOT CONVERGED" not in est.summary()
+
+
+def test_estimate_keeps_srivc_when_the_rescue_does_not_converge(noisy, monkeypatch):
+    """As above, but output error is made to report "max_steps_reached" (its result relabelled,
+    every number its own): the rescue is refused, SRIVC's best iterate is returned, NOT
+    CONVERGED, warned, and the note says why (glass furnace y1 in benchmarks/real_data.py is
+    the real case: output error from the unconverged iterate diverged to fit -504 %)."""
+    import mfmjax._estimate as est_mod
+    from mfmjax._pytree import replace_fields
+
+    real = est_mod.output_error_many
+
+    def not_converged(*args, **kwargs):
+        return [None if f is None else replace_fields(f, converged=False,
+                                                      result="max_steps_reached")
+                for f in real(*args, **kwargs)]
+
+    monkeypatch.setattr(est_mod, "output_error_many", not_converged)
+    sig, _ = noisy
+    with pytest.warns(UserWarning, match=r"estimate\(\): srivc did not converge"):
+        est = mfmjax.estimate(sig, max_iter=1, **GRID)
+    assert est.method == "srivc" and not est.converged and est.output_error is None
+    assert any("output error did not converge either" in note for note in est.notes)
+    assert "NOT CONVERGED" in est.summary()
