@@ -364,7 +364,8 @@ def parsimonious(E: float, model: Model, n_hold: int) -> float:
     true one won 37 of 100 noisy records by fitting noise; with this margin (0.1 % per
     parameter on 2,000 samples) the smaller structure wins unless the larger predicts
     measurably better (benchmarks/noise_montecarlo.py)."""
-    return E * (1.0 + 2.0 * len(free_parameters(model)[0]) / n_hold)
+    k = model.structure.n_params - 1 + model.has_offset  # as `free_parameters` (a_n = 1)
+    return E * (1.0 + 2.0 * k / n_hold)
 
 
 FALLBACKS = 2  # next-ranked SRIVC candidates tried where the chosen one did not converge
