@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _boundary as _b
+from ._jit import jit
 from ._model import Model
 from ._observers import fit_percent, observe, validation_window
 from ._output_error import free_parameters, with_parameters
@@ -352,7 +353,7 @@ def _step_base(model):
     return replace_fields(base, intersample=("zoh",) * model.n_inputs)
 
 
-@eqx.filter_jit
+@jit
 def _step_program(base, theta, u, cov, dt):
     """Step response y (T,) for inputs u (T+1, K) that step at sample 1 (inputs before sample
     0 are held at u[0] = 0, so delays see rest), and its delta-method std."""
@@ -429,7 +430,7 @@ class FrequencyResponse(eqx.Module):
         plot_bode(self, path)
 
 
-@eqx.filter_jit
+@jit
 def _freq_program(base, theta, w, cov, k):
     """(|H_k| in dB, angle of B_k/A in rad) (2, W) at w and its delta-method std (the delay
     term is exact and known: added outside)."""

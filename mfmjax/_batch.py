@@ -8,6 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._jit import jit
 from ._pytree import replace_fields
 
 
@@ -42,7 +43,7 @@ def groups(trees) -> list[list[int]]:
     return chunks
 
 
-@eqx.filter_jit
+@jit
 def _mapped(fn, kw, sig, ys, us, models):
     def one(args):
         y, u, model = args

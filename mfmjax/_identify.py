@@ -16,6 +16,7 @@ from ._gram import (
     gram,
     modulated_signals,
 )
+from ._jit import jit
 from ._model import Model
 from ._modulating import ModulatingFunction, as_values
 from ._signals import Signals
@@ -63,7 +64,7 @@ def _fmt(v):
     return v.tolist()
 
 
-@eqx.filter_jit
+@jit
 def identify_core(signals, structure, mf, eta, length: int):
     """The compiled core: `signals` unlabelled, `mf` as values (`as_values`), `length` the static
     kernel length (`compiled_length`). One program per (structure, record shape, length bucket)."""

@@ -21,6 +21,7 @@ import numpy as np
 
 from . import _boundary as _b
 from ._boundary import require_x64
+from ._jit import jit
 from ._linalg import conditioning_eigvals, expm, solve
 from ._model import Model
 from ._quadrature import gregory_weights
@@ -199,7 +200,7 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
     return _checked(obs, "observe")
 
 
-_observe = eqx.filter_jit(observe_window)
+_observe = jit(observe_window)
 
 
 def initial_state(model: Model, signals: Signals, window=None):
@@ -239,7 +240,7 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
     return _moving(model.unlabelled(), signals.y, signals.u, signals.dt, ends, length)
 
 
-@eqx.filter_jit
+@jit
 def _moving(model, y, u, dt, ends, length):
     forced = forced_response(model, u, dt)  # once for the record, not once per window
     obs = jax.vmap(lambda e: observe_forced(forced, y, dt, e - (length - 1), length, None))(ends)

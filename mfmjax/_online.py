@@ -52,6 +52,7 @@ import numpy as np
 
 from . import _boundary as _b
 from ._boundary import require_x64
+from ._jit import jit
 from ._model import Model, plain_number
 from ._observers import observe_forced
 from ._search import padded_forced, plan_search, run_plan, validate_candidate
@@ -393,12 +394,12 @@ def _plan_grid(config: OnlineConfig, intervals: int, delays: tuple, h: tuple | N
     )
 
 
-@eqx.filter_jit
+@jit
 def _score(sig, static, c):
     return validate_candidate(sig, static, c)
 
 
-@eqx.filter_jit
+@jit
 def _predict(sig, c, start: int, ob: int):
     """Final-state observer over samples [start, start+ob) then the simulation to the end."""
     forced, live = padded_forced(sig, c)
@@ -407,7 +408,7 @@ def _predict(sig, c, start: int, ob: int):
     return obs.y_sim[ob:], obs.status
 
 
-@eqx.filter_jit
+@jit
 def _predict_many(sig, cs, start: int, ob: int):
     """`_predict` of a stack of candidates: (y_sim (C, S), status (C,))."""
     return jax.vmap(lambda c: _predict(sig, c, start, ob))(cs)

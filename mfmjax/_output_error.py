@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._jit import jit
 from ._linalg import expm
 from ._model import Model
 from ._optim import USABLE
@@ -121,12 +122,12 @@ class _Residual(eqx.Module):
         return self.y - sim(self.theta0 + self.scale * z[:p], self.x_init + self.x_scale * z[p:])
 
 
-@eqx.filter_jit
+@jit
 def _residual_at(fn, z):
     return fn(z, None)
 
 
-@eqx.filter_jit
+@jit
 def _jacobian(fn, z):
     return jax.jacfwd(fn)(z, None)
 
@@ -261,7 +262,7 @@ def output_error_many(records, models, *, max_steps: int = 100, rtol: float = 1e
     return out
 
 
-@eqx.filter_jit
+@jit
 def _lm_many(residuals, max_steps, rtol, atol):
     return jax.lax.map(lambda res: _lm(res, jnp.zeros(res.size), max_steps, rtol, atol),
                        residuals)
@@ -270,7 +271,7 @@ def _lm_many(residuals, max_steps, rtol, atol):
 LM_CODES = ("successful", "nonlinear_max_steps_reached", "nonlinear_divergence")
 
 
-@eqx.filter_jit
+@jit
 def _lm(residual, z0, max_steps, rtol, atol):
     r"""Levenberg-Marquardt with Marquardt's diagonal scaling and Nielsen's damping update,
     one compiled loop. Each trial point costs one forward-mode pass that gives the residual

@@ -23,6 +23,7 @@ import numpy as np
 import optimistix as optx
 
 from ._identify import identify_core
+from ._jit import jit
 from ._model import Model
 from ._modulating import ModulatingFunction, as_values
 from ._observers import fit_percent, observe_forced, validation_window
@@ -82,7 +83,7 @@ def scores(
                        jnp.asarray(v0, dtype=jnp.int32), length, ob)[0]
 
 
-_scores_jit = eqx.filter_jit(_scores)
+_scores_jit = jit(_scores)
 
 
 # -- hyperparameter refinement ---------------------------------------------------------------
@@ -146,7 +147,7 @@ class _Objective(eqx.Module):
         return jnp.where(ok, jnp.log(jnp.where(ok, val, 1.0)), jnp.inf), None
 
 
-@eqx.filter_jit
+@jit
 def _value(fn, z):
     return fn(z, None)[0]
 
@@ -267,18 +268,18 @@ def _plain(v):
     return float(v) if v.ndim == 0 else [float(x) for x in v]
 
 
-@eqx.filter_jit
+@jit
 def _bfgs_init(solver, fn, y):
     f_struct = jax.ShapeDtypeStruct((), jnp.float64)
     return solver.init(fn, y, None, {}, f_struct, None, frozenset())
 
 
-@eqx.filter_jit
+@jit
 def _bfgs_step(solver, fn, y, state):
     y, state, _ = solver.step(fn, y, None, {}, state, frozenset())
     return y, state
 
 
-@eqx.filter_jit
+@jit
 def _bfgs_terminate(solver, fn, y, state):
     return solver.terminate(fn, y, None, {}, state, frozenset())

@@ -12,13 +12,13 @@ Inputs before the first sample are held at the first sample's value.
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import _boundary as _b
 from ._boundary import require_x64
+from ._jit import jit
 from ._linalg import expm
 from ._model import Model
 from ._quadrature import delayed_samples, shift_samples, split_delay
@@ -143,7 +143,7 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
     return (y, xs) if return_state else y
 
 
-_simulate = eqx.filter_jit(simulate_status)  # one cacheable program (dt static, as in observe)
+_simulate = jit(simulate_status)  # one cacheable program (dt static, as in observe)
 
 
 def _overflow_message(model: Model, u, x0) -> str:

@@ -51,6 +51,7 @@ import numpy as np
 from jax.custom_batching import custom_vmap
 
 from . import _boundary as _b
+from ._jit import array_jit
 from ._linalg import expm, hurwitz, solve
 from ._model import Model
 from ._quadrature import delayed_samples, shift_samples, split_delay
@@ -310,7 +311,7 @@ def _program(n, m, modes, has_offset):
         out = jax.lax.map(lambda xs: fn(*xs), args)
         return out, jax.tree.map(lambda _: True, out)
 
-    return jax.jit(fn)
+    return array_jit(fn)
 
 
 def srivc(signals: Signals, model: Model, *, max_iter: int = 30, tol: float = 1e-8) -> SrivcFit:

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._identify import FEEDTHROUGH_STEPS
+from .._jit import jit
 from .._signals import Signals
 from .._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
 from ._grid import ChunkStatic, OrderClass, Plan
@@ -125,10 +126,10 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, structs,
     return dict(out, status=status, **val)
 
 
-chunk_jit = eqx.filter_jit(evaluate_chunk)
+chunk_jit = jit(evaluate_chunk)
 
 
-@eqx.filter_jit
+@jit
 def chunk_records_jit(sig: Signals, ys, us, *args):
     """`evaluate_chunk` for records of equal layout (outputs ys (R, T), inputs us (R, T, K)),
     one after another inside one compiled call (`lax.map`: memory of one record)."""

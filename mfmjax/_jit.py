@@ -1,0 +1,58 @@
+"""How mfmjax compiles: `jit` is `eqx.filter_jit` with the library's XLA options."""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import equinox as eqx
+import jax
+
+# XLA:CPU's new fusion emitters (on by default in jaxlib 0.10) cost 30-45 % more compile
+# time on this library's programs (many small fusions) and gave no measurable run-time gain
+# (`python benchmarks/compile_options.py`). `MFMJAX_XLA_DEFAULTS=1` compiles with XLA's own
+# defaults instead. Options are per program: other JAX code in the process is unaffected.
+COMPILER_OPTIONS = (
+    {} if os.environ.get("MFMJAX_XLA_DEFAULTS", "").strip().lower() in ("1", "true", "yes", "on")
+    else {"xla_cpu_use_fusion_emitters": False}
+)
+
+
+def _top_level() -> bool:
+    """True outside every JAX transformation (JAX takes compiler options only there)."""
+    try:
+        from jax._src.core import trace_ctx
+
+        return trace_ctx.is_top_level()
+    except (ImportError, AttributeError):  # another jax: compile with its defaults
+        return False
+
+
+def jit(fun=None, **jitkwargs):
+    """`eqx.filter_jit(fun, **jitkwargs)`, compiled with `COMPILER_OPTIONS` when called at the
+    top level; inside a user's `jax.jit`/`vmap`/`grad` it is inlined into the caller's program
+    (whose options apply), as a plain `filter_jit` is."""
+    if fun is None:
+        return functools.partial(jit, **jitkwargs)
+    return _tuned(eqx.filter_jit, fun, jitkwargs)
+
+
+def array_jit(fun, **jitkwargs):
+    """`jit` over `jax.jit` (every argument traced, Python numbers included)."""
+    return _tuned(jax.jit, fun, jitkwargs)
+
+
+def _tuned(make, fun, jitkwargs):
+    plain = make(fun, **jitkwargs)
+    if not COMPILER_OPTIONS:
+        return plain
+    tuned = make(fun, compiler_options=dict(COMPILER_OPTIONS), **jitkwargs)
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        return (tuned if _top_level() else plain)(*args, **kwargs)
+
+    call.lower = tuned.lower  # the top-level program
+    if hasattr(tuned, "_cached"):
+        call._cached = tuned._cached
+    return call
