@@ -180,3 +180,52 @@ def test_cli_uses_the_cache_unless_told_not_to(tmp_path):
     (folder,) = (tmp_path / "on" / "mfmjax").iterdir()
     assert any(p.name.endswith("-cache") for p in folder.iterdir())
     assert not (tmp_path / "off").exists()
+
+
+def test_programs_compile_with_the_library_options_at_top_level_only():
+    """`mfmjax._jit.jit`: a top-level call compiles with COMPILER_OPTIONS; inside a user's
+    jit / vmap / grad the same function inlines (JAX refuses compiler options on a nested
+    jit: this used to raise ValueError) and gives the top-level call's numbers."""
+    import jax.numpy as jnp
+
+    from mfmjax._jit import COMPILER_OPTIONS, _top_level, jit
+
+    assert COMPILER_OPTIONS == {"xla_cpu_use_fusion_emitters": False}
+    f = jit(lambda x: jnp.sin(x) * 2.0)
+    assert dict(f.lower(jnp.ones(3)).lowered._lowering._compiler_options_kvs) == COMPILER_OPTIONS
+    assert _top_level()
+    seen = []
+    jax.jit(lambda x: seen.append(_top_level()) or x)(1.0)
+    jax.vmap(lambda x: seen.append(_top_level()) or x)(jnp.ones(2))
+    jax.grad(lambda x: seen.append(_top_level()) or x)(1.0)
+    assert seen == [False, False, False]
+    # a library program under each transform: same numbers as the top-level call
+    model = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0, 0.5]])
+    u = np.sin(np.linspace(0.0, 6.0, 200))[:, None]
+    top = np.asarray(mfmjax.simulate(model, u, dt=0.03))
+    inner = np.asarray(jax.jit(lambda uu: mfmjax.simulate(model, uu, dt=0.03))(u))
+    batched = np.asarray(jax.vmap(lambda uu: mfmjax.simulate(model, uu, dt=0.03))(u[None]))[0]
+    # same operations, compiled by different XLA pipelines: equal to rounding (1e-12 of the
+    # response's scale, far above float64 epsilon times the scan's 200 steps)
+    scale = np.max(np.abs(top))
+    assert np.max(np.abs(inner - top)) <= 1e-12 * scale
+    assert np.max(np.abs(batched - top)) <= 1e-12 * scale
+    import equinox as eqx
+
+    grad = jax.grad(lambda c: mfmjax.simulate(
+        eqx.tree_at(lambda m: m.b[0], model, jnp.stack([c, 0.5])), u, dt=0.03).sum())(1.0)
+    # y is linear in b: d(sum y)/d b_1 is the summed response of b = (1, 0)
+    unit = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0, 0.0]])
+    expect = float(np.sum(np.asarray(mfmjax.simulate(unit, u, dt=0.03))))
+    assert abs(float(grad) - expect) <= 1e-10 * abs(expect)
+
+
+def test_xla_defaults_opt_out():
+    """MFMJAX_XLA_DEFAULTS=1 compiles with XLA's defaults (no options are passed)."""
+    code = ("import mfmjax._jit as j, jax.numpy as jnp; "
+            "print(j.COMPILER_OPTIONS, j.jit(lambda x: x + 1).lower(jnp.ones(2))"
+            ".lowered._lowering._compiler_options_kvs)")
+    env = dict(os.environ, MFMJAX_XLA_DEFAULTS="1")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["{}", "()"]
