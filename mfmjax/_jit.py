@@ -8,10 +8,11 @@ import os
 import equinox as eqx
 import jax
 
-# XLA:CPU's new fusion emitters (on by default in jaxlib 0.10) cost 30-45 % more compile
-# time on this library's programs (many small fusions) and gave no measurable run-time gain
-# (`python benchmarks/compile_options.py`). `MFMJAX_XLA_DEFAULTS=1` compiles with XLA's own
-# defaults instead. Options are per program: other JAX code in the process is unaffected.
+# XLA:CPU's new fusion emitters (on by default in jaxlib 0.10) took 1.3-2.1x the compile time
+# on this library's programs (many small fusions); with them off, warm calls ran 0.68-0.96x,
+# except `simulate` at 1.24x (0.3 ms) (`python benchmarks/compile_options.py`).
+# `MFMJAX_XLA_DEFAULTS=1` compiles with XLA's own defaults instead. Options are per program:
+# other JAX code in the process is unaffected.
 COMPILER_OPTIONS = (
     {} if os.environ.get("MFMJAX_XLA_DEFAULTS", "").strip().lower() in ("1", "true", "yes", "on")
     else {"xla_cpu_use_fusion_emitters": False}
