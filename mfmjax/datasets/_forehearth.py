@@ -29,7 +29,6 @@ Sampling: 1 s. Deterministic per seed.
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import solve_banded
 
 from .. import _boundary as _b
 
@@ -134,6 +133,8 @@ def forehearth(experiment: int = 1, seed: int = 0) -> dict:
     if isinstance(experiment, bool) or experiment not in _EXPERIMENTS:
         raise ValueError(f"forehearth(): experiment must be 1 or 2 (got {experiment!r})")
     seed = _b.integer("forehearth", "seed", seed, lo=0)
+    from scipy.linalg import solve_banded  # here: `import mfmjax` does not load scipy.linalg
+
     ex = _EXPERIMENTS[experiment]
     rng = np.random.default_rng(seed)
     n_samples = ex["duration"] + 1
