@@ -19,14 +19,17 @@ COMPILER_OPTIONS = (
 )
 
 
+try:  # private, resolved once: jax is pinned to 0.10.x; without it, XLA's defaults are used
+    from jax._src.core import trace_ctx as _trace_ctx
+
+    _trace_ctx.is_top_level  # noqa: B018
+except (ImportError, AttributeError):
+    _trace_ctx = None
+
+
 def _top_level() -> bool:
     """True outside every JAX transformation (JAX takes compiler options only there)."""
-    try:
-        from jax._src.core import trace_ctx
-
-        return trace_ctx.is_top_level()
-    except (ImportError, AttributeError):  # another jax: compile with its defaults
-        return False
+    return _trace_ctx is not None and _trace_ctx.is_top_level()
 
 
 def jit(fun=None, **jitkwargs):
