@@ -75,7 +75,7 @@ def solve_status(theta, reduced_cond, finite_data):
     return status | jnp.where(reduced_cond > ILL_CONDITIONED, Status.ILL_CONDITIONED, 0)
 
 
-def finish_solve(theta, G, reduced_cond, n: int, data_ok, excited):
+def finish_solve(theta, G, reduced_cond, n, data_ok, excited, n_max: int | None = None):
     r"""The post-solve step shared by `identify` and `search` (one candidate of order `n`).
 
     Status bits of the solve (`solve_status`), `NO_EXCITATION` unless `excited`, `A_N_ZERO`
@@ -83,12 +83,17 @@ def finish_solve(theta, G, reduced_cond, n: int, data_ok, excited):
     $a_n$ vanished); the quadratic form $\theta^T G \theta$ of eq. (8) and the scale-free
     $J_{rel} = (\theta^T G\theta / \sum_i \theta_i^2 G_{ii})^{1/2}$.
 
+    `n` is a static int in the compact layout (a_0..a_n first); in the padded layout of the
+    search (a block a_0..a_{n_max}, zero beyond the candidate's order) it may be traced, with
+    `n_max` the static block size.
+
     **Returns:** `(status, divisor, quad, J_rel)`.
     """
     status = solve_status(theta, reduced_cond, data_ok)
     status = status | jnp.where(excited, 0, Status.NO_EXCITATION)
     an = theta[n]
-    an_ok = jnp.abs(an) > A_N_RTOL * jnp.max(jnp.abs(theta[: n + 1]))
+    a_len = n + 1 if n_max is None else n_max + 1
+    an_ok = jnp.abs(an) > A_N_RTOL * jnp.max(jnp.abs(theta[:a_len]))
     status = status | jnp.where(an_ok, 0, Status.A_N_ZERO)
     quad = jnp.maximum(theta @ G @ theta, 0.0)
     terms = jnp.sum(theta**2 * jnp.diagonal(G))

@@ -14,15 +14,15 @@ from .._identify import FEEDTHROUGH_STEPS
 from .._jit import jit
 from .._signals import Signals
 from .._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
-from ._grid import ChunkStatic, OrderClass, Plan
+from ._grid import ChunkStatic, Plan
 from ._moments import moment_gram
 from ._result import collect
 from ._validation import validate_candidate
 
 
-def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, structs, nm, where):
-    """All candidates of a chunk of (h, delays) groups: for every group, the classes' (N, M)
-    x structure products, flattened in class order: outputs (G, C_group, ...)."""
+def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm, where):
+    """All candidates of a chunk of (h, delays) groups: for every group, the plan's candidates
+    `cand` ((N, M) pair x structure, order class by order class): outputs (G, C_group, ...)."""
     K = sig.n_inputs
     n_max, m_max = static.n_max, static.m_max
     p = n_max + 1 + sum(mk + 1 for mk in m_max) + int(sig.offset)
@@ -44,31 +44,29 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, structs,
         alive = jnp.sqrt(jnp.maximum(jnp.diagonal(Gx)[:p], 0.0)) > DEAD_COLUMN_RTOL * bounds
         return Gx, alive
 
-    def solve(Gx, alive, h, N, M, st, cls: OrderClass):
-        """One candidate of class `cls` in its compact layout; results in the padded one."""
-        n, sel = cls.n, np.asarray(cls.sel)
-        pc = len(sel)
-        off = np.cumsum([n + 1] + [mk + 1 for mk in cls.m])  # start of each b block
-        mask, ft = st["mask"], st["ft"]
+    a_idx = np.arange(n_max + 1)
+
+    def solve(Gx, alive, h, N, M, c):
+        """One candidate in the padded layout, the columns beyond its orders masked: one
+        program for every order class (the order `c["n"]` is traced)."""
+        n, mask, ft = c["n"], c["mask"], c["ft"]
         active = mask & alive
-        eta = jnp.where(mask, eta_full[sel], 0.0)
-        G0 = Gx[:pc, :pc]
-        G = G0
-        if static.ft_inputs:
-            theta, _, _ = constrained_solve(G0, eta, active, conditioning=False)
+        eta = jnp.where(mask, eta_full, 0.0)
+        G = Gx[:p, :p]
+        if static.ft_inputs:  # m_k = n: the output columns corrected by D_k (see _gram)
+            theta, _, _ = constrained_solve(G, eta, active, conditioning=False)
             for _ in range(FEEDTHROUGH_STEPS):
                 an = jnp.where(theta[n] != 0, theta[n], 1.0)
-                P = jnp.eye(Gx.shape[0], pc)
+                P = jnp.eye(Gx.shape[0], p)
                 for qi, k in enumerate(static.ft_inputs):
-                    Dk = jnp.where(ft[k], theta[off[k] + n] / an, 0.0)
-                    rows = pc + qi * (n + 1) + np.arange(n + 1)
-                    P = P.at[rows, np.arange(n + 1)].set(-Dk)
+                    Dk = jnp.where(ft[k] & (a_idx <= n), theta[pad[k] + n] / an, 0.0)
+                    P = P.at[p + qi * (n_max + 1) + a_idx, a_idx].set(-Dk)
                 G = P.T @ Gx @ P
                 theta, _, _ = constrained_solve(G, eta, active, conditioning=False)
         theta, cond, reduced = constrained_solve(G, eta, active)
         dead = jnp.any(mask & ~alive)
-        status, div, quad, J_rel = finish_solve(theta, G, reduced, n, finite, excited & ~dead)
-        theta = jnp.zeros(p).at[sel].set(theta)  # padded layout from here on
+        status, div, quad, J_rel = finish_solve(theta, G, reduced, n, finite, excited & ~dead,
+                                                n_max=n_max)
         norm = theta / div
         b = [jnp.zeros(n_max + 1).at[: m_max[k] + 1].set(norm[pad[k] : pad[k] + m_max[k] + 1])
              for k in range(K)]
@@ -84,18 +82,9 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, structs,
         H, W, scale = moment_gram(sig, static, h, delays, where["segments"])
         return jax.vmap(lambda coef: one_nm(H, W, scale, h, coef))(nm["coef"])
 
-    def solve_group(h, Gx, alive):
-        outs = []
-        for cls, st in zip(static.classes, structs):
-            r, ext = np.asarray(cls.nm), np.asarray(cls.sel_ext)
-            Gc, ac = Gx[r][:, ext[:, None], ext[None, :]], alive[r][:, np.asarray(cls.sel)]
-
-            def per_nm(G, a, N, M, cls=cls, st=st):
-                return jax.vmap(lambda s: solve(G, a, h, N, M, s, cls))(st)
-
-            o = jax.vmap(per_nm)(Gc, ac, nm["N"][r], nm["M"][r])  # (NM_c, S_c, ...)
-            outs.append(jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), o))
-        return {key: jnp.concatenate([o[key] for o in outs]) for key in outs[0]}
+    def solve_group(h, Gx, alive):  # every candidate of one (h, delays) setting
+        return jax.vmap(lambda c: solve(Gx[c["nm"]], alive[c["nm"]], h, nm["N"][c["nm"]],
+                                        nm["M"][c["nm"]], c))(cand)
 
     # the signal-sized work one setting at a time (cache-sized; vmapped over the devices'
     # blocks of the sharded axis), the small solves batched over all of them
@@ -108,15 +97,12 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, structs,
     if not static.simulate:  # equation error only (score J)
         nan = jnp.full(shape, jnp.nan)
         return dict(out, E=nan, fit=nan, aic=nan, bic=nan, status=out["status"].astype(jnp.int32))
-    per_col = {key: jnp.concatenate([jnp.tile(st[key], len(cls.nm))
-                                     for cls, st in zip(static.classes, structs)])
-               for key in ("n", "k")}
     flat = {
         "a": out["a"].reshape(-1, n_max + 1),
         "b": out["b"].reshape(-1, K, n_max + 1),
         "offset": out["offset"].reshape(-1),
-        "n": jnp.broadcast_to(per_col["n"], shape).reshape(-1),
-        "k": jnp.broadcast_to(per_col["k"], shape).reshape(-1),
+        "n": jnp.broadcast_to(cand["n"], shape).reshape(-1),
+        "k": jnp.broadcast_to(cand["k"], shape).reshape(-1),
         "delays": jnp.broadcast_to(groups["delays"][:, None, :], shape + (K,)).reshape(-1, K),
     }
     val = jax.lax.map(lambda c: validate_candidate(sig, static, c, where["v_start"]), flat,
@@ -166,7 +152,7 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None):
         }
         g = {k: place(v, plan.sharding) for k, v in g.items()}
         t0 = time.perf_counter()
-        args = (static, plan.eta, g, plan.struct_arr, plan.nm, plan.where)
+        args = (static, plan.eta, g, plan.cand, plan.nm, plan.where)
         if len(batch) == 1:  # one record: the program `search` uses
             res = [jax.block_until_ready(chunk_jit(batch[0].unlabelled(), *args))]
         else:

@@ -64,25 +64,11 @@ class ChunkStatic(eqx.Module):
     sources: tuple = eqx.field(static=True)  # (kind, k, rule) of every moment source
     col_deriv: tuple[int, ...] = eqx.field(static=True)  # derivative order of every column
     col_source: tuple[int, ...] = eqx.field(static=True)  # source of each of the first p columns
-    classes: tuple = eqx.field(static=True)  # `OrderClass` of every model order
     devices: int = eqx.field(static=True)  # devices the (h, delays) axis is sharded over
     v_length: int = eqx.field(static=True)
     ob_length: int = eqx.field(static=True)
     simulate: bool = eqx.field(static=True)
     batch: int = eqx.field(static=True)  # candidates per vmapped validation batch
-
-
-class OrderClass(NamedTuple):
-    """The candidates of one model order n: every (N, M) with N, M >= n x every structure of
-    order n, solved in a compact layout (only the columns order n can use: a_0..a_n, b_k up to
-    the class's largest m_k, offset) that `sel` picks from the padded one."""
-
-    n: int
-    sel: tuple[int, ...]  # compact column -> padded column
-    sel_ext: tuple[int, ...]  # the same for the extended Gram (feed-through columns appended)
-    m: tuple[int, ...]  # largest m_k of the class
-    nm: tuple[int, ...]  # its (N, M) pairs (indices)
-    structs: tuple[int, ...]  # its structures (indices)
 
 
 def device_mesh():
@@ -96,7 +82,8 @@ class Plan(NamedTuple):
     static: ChunkStatic
     eta: jax.Array
     structs: list
-    struct_arr: dict
+    cand: dict  # per candidate of a setting: its (N, M) pair "nm", order "n", padded "mask",
+    # feed-through inputs "ft" and parameter count "k"
     nm: dict
     hd: list
     combos: list
@@ -229,42 +216,37 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
             coef[:, j, minus] -= sign * by_deriv[i]
     nm = {"N": jnp.asarray([a for a, _ in nm_pairs]), "M": jnp.asarray([b for _, b in nm_pairs]),
           "coef": jnp.asarray(coef)}
-    classes, struct_arr = [], []
-    pad_off = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])
+    # the candidates of one (h, delays) setting, order class by order class: every (N, M) with
+    # N, M >= n x every structure of order n; each solved in the padded layout with its mask
+    col_nm, col_struct = [], []
     for n_c in sorted({st[0] for st in structs}):
         members = [j for j, st in enumerate(structs) if st[0] == n_c]
         pairs = [r for r, (a, b) in enumerate(nm_pairs) if min(a, b) >= n_c]
-        if not pairs:
-            continue
-        m_c = tuple(max(structs[j][1][k] for j in members) for k in range(K))
-        sel = list(range(n_c + 1))
-        for k in range(K):
-            sel += [int(pad_off[k]) + i for i in range(m_c[k] + 1)]
-        sel += [p - 1] if signals.offset else []
-        sel_ext = sel + [p + q * (n_max + 1) + i for q in range(len(ft_inputs)) for i in range(n_c + 1)]
-        classes.append(OrderClass(n_c, tuple(sel), tuple(sel_ext), m_c, tuple(pairs), tuple(members)))
-        struct_arr.append({
-            "n": jnp.full(len(members), n_c, dtype=jnp.int32),
-            "mask": jnp.asarray([_mask(structs[j], n_c, m_c, signals.offset) for j in members]),
-            "ft": jnp.asarray([[structs[j][1][k] == n_c for k in range(K)]
-                               for j in members]).reshape(len(members), K),
-            "k": jnp.asarray([n_c + sum(mk + 1 for mk in structs[j][1]) + int(signals.offset)
-                              for j in members], dtype=jnp.float64),
-        })
+        col_nm += [r for r in pairs for _ in members]
+        col_struct += [j for _ in pairs for j in members]
+    col_nm, col_struct = np.asarray(col_nm), np.asarray(col_struct)
+    per_struct = {
+        "n": np.asarray([st[0] for st in structs], dtype=np.int32),
+        "mask": np.asarray([_mask(st, n_max, m_max, signals.offset) for st in structs]),
+        "ft": np.asarray([[st[1][k] == st[0] for k in range(K)] for st in structs],
+                         dtype=bool).reshape(len(structs), K),
+        "k": np.asarray([st[0] + sum(mk + 1 for mk in st[1]) + int(signals.offset)
+                         for st in structs], dtype=np.float64),
+    }
+    cand = {key: jnp.asarray(v[col_struct]) for key, v in per_struct.items()}
+    cand["nm"] = jnp.asarray(col_nm, dtype=jnp.int32)
     static = ChunkStatic(
         n_max, m_max, ft_inputs, kernel_length(max(h_max + delay_max, span_bound), dt), degree,
-        tuple(sources), tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]), tuple(classes),
+        tuple(sources), tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]),
         len(jax.devices()), v_len, ob, bool(simulate), VALIDATION_BATCH,
     )
     mesh = device_mesh()
     n_dev = mesh.devices.size
     chunk = n_dev * math.ceil(min(chunk_size, len(hd)) / n_dev)  # no padding beyond the grid
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("c"))
-    col_nm = np.concatenate([np.repeat(c.nm, len(c.structs)) for c in classes])
-    col_struct = np.concatenate([np.tile(c.structs, len(c.nm)) for c in classes])
     where = {"segments": jnp.asarray(segments, dtype=jnp.int32),
              "v_start": jnp.asarray(v0, dtype=jnp.int32)}
-    return Plan(static, eta, structs, tuple(struct_arr), nm, hd, combos, (col_nm, col_struct),
+    return Plan(static, eta, structs, cand, nm, hd, combos, (col_nm, col_struct),
                 chunk, sharding, score, signals.n_samples, K, where)
 
 
