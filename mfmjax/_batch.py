@@ -56,9 +56,11 @@ def map_pairs(fn, records, models, **kw) -> list:
     """`fn(records[i], models[i], **kw)` for every pair: each chunk of `BATCH` pairs of one
     model structure in one compiled call, a single pair by `fn` itself (the program a direct
     call uses). `records`: `Signals` of one layout; `kw` are static (hashable). The models'
-    labels and modulating functions are dropped (`fn` does not use them). An entry is None
+    labels and modulating functions are dropped (`fn` does not use them); other pytrees (e.g.
+    the search's padded candidates) pass as they are. An entry is None
     where `fn` raised ValueError (e.g. an overflowing simulation in eager mode)."""
-    models = [replace_fields(m.unlabelled(), mf=None) for m in models]
+    models = [replace_fields(m.unlabelled(), mf=None) if hasattr(m, "unlabelled") else m
+              for m in models]
     out = [None] * len(models)
     for idx in groups(models):
         try:

@@ -20,11 +20,12 @@ from . import _boundary as _b
 from ._batch import map_pairs
 from ._boundary import check_search
 from ._model import Model
-from ._observers import fit_percent, observe
+from ._observers import fit_percent, validation_window
 from ._output_error import OutputErrorFit, free_parameters, output_error, output_error_many, stabilised
 from ._pytree import replace_fields
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import CHUNK_SETTINGS
+from ._search._validation import observe_candidate, padded_candidate
 from ._selection import OBSERVER_FRACTION, holdout_search, rank_by
 from ._signals import Signals
 from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc
@@ -180,8 +181,8 @@ def _reason(est: Estimate) -> str:
     return est.srivc.describe() if est.srivc is not None else "no stage ran"
 
 
-def _observed(signals: Signals, model: Model, window, observer_window):
-    return observe(model, signals, window, observer_window=observer_window)
+def _observed(signals: Signals, candidate: dict, **kw):
+    return observe_candidate(signals.unlabelled(), candidate, **kw)
 
 
 def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
@@ -219,13 +220,17 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
                       OBSERVER_FRACTION * (hold[1] - hold[0]),
                       [np.asarray(rec.window(*hold).y) for rec in records]))
 
+    n_max = max(int(np.max(sel.refit.columns["n"])) for sel in sels)  # one observer program
+
     def hold_scores(pairs):
         """(mean hold-out E over the folds, mean fit %) of each (record, models per fold)."""
         E = np.zeros((len(pairs), len(folds)))
         fit = np.zeros_like(E)
         for f, (_, hold, ob, y_hold) in enumerate(folds):
+            start, length, ob = validation_window(records[0], hold, ob, n_max, "estimate")
             obs = map_pairs(_observed, [records[r] for r, _ in pairs],
-                            [ms[f] for _, ms in pairs], window=hold, observer_window=ob)
+                            [padded_candidate(ms[f], n_max) for _, ms in pairs],
+                            start=np.int32(start), length=length, ob_length=ob)
             for k, ((r, _), o) in enumerate(zip(pairs, obs)):
                 if o is None or int(o.status) & (Status.OVERFLOW | Status.UNOBSERVABLE):
                     E[k, f], fit[k, f] = np.inf, np.nan  # not usable on the hold-out

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from .._jit import jit
 from .._linalg import hurwitz
 from .._observers import fit_percent, observe_forced
 from .._signals import Signals
@@ -43,3 +45,25 @@ def validate_candidate(sig: Signals, static: ChunkStatic, c, v_start=0):
     loglik = Nv * jnp.log(jnp.maximum(obs.E / (Nv * sig.dt), 1e-300))
     return dict(E=obs.E, fit=fit_percent(yv, obs.y_sim), aic=loglik + 2 * c["k"],
                 bic=loglik + c["k"] * jnp.log(Nv), status=status)
+
+
+def padded_candidate(model, n_max: int) -> dict:
+    """A concrete `Model` of order n <= `n_max` as a zero-padded candidate (`padded_forced`):
+    every order shares one pytree structure, hence one compiled observer."""
+    K = model.n_inputs
+    a, b = np.zeros(n_max + 1), np.zeros((K, n_max + 1))
+    a[: model.n + 1] = np.asarray(model.a)
+    for k in range(K):
+        b[k, : model.m[k] + 1] = np.asarray(model.b[k])
+    return {"a": a, "b": b, "offset": np.asarray(model.offset, dtype=np.float64),
+            "n": np.asarray(model.n, dtype=np.int32),
+            "delays": np.asarray(model.delays, dtype=np.float64).reshape(K)}
+
+
+@jit
+def observe_candidate(sig: Signals, c, start, length: int, ob_length: int):
+    """The observers (eq. 14-15) and E (eq. 17) of a zero-padded candidate on samples
+    `start .. start + length - 1` (`start` traced): `observe_window` for any order at once."""
+    yw = jax.lax.dynamic_slice_in_dim(sig.y, start, length)
+    forced, live = padded_forced(sig, c, start + jnp.arange(length))
+    return observe_forced(forced, yw, sig.dt, 0, length, ob_length, live)
