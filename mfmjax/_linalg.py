@@ -142,9 +142,11 @@ def expm(A):
     s = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(norm, 1e-300) / 0.5)), 0, _SQUARINGS)
     X = A / (2.0**s)
     eye = jnp.eye(n, dtype=A.dtype)
-    E = eye
-    for k in range(_TAYLOR, 0, -1):  # Horner: I + X/1 (I + X/2 (I + ...))
-        E = eye + (X @ E) / k
+
+    def horner(i, E):  # I + X/1 (I + X/2 (I + ...)), k = _TAYLOR .. 1 (a loop: one copy)
+        return eye + (X @ E) / (_TAYLOR - i).astype(A.dtype)
+
+    E = jax.lax.fori_loop(0, _TAYLOR, horner, eye)
 
     def square(i, E):
         return jnp.where(i < s, E @ E, E)

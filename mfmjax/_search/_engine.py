@@ -105,9 +105,15 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
         "k": jnp.broadcast_to(cand["k"], shape).reshape(-1),
         "delays": jnp.broadcast_to(groups["delays"][:, None, :], shape + (K,)).reshape(-1, K),
     }
+    # batches of `static.batch` candidates; the flat axis is padded (with its last candidate)
+    # to a whole number of batches: `lax.map`'s remainder would compile the body a second time
+    total = int(np.prod(shape))
+    padded = -(-total // static.batch) * static.batch
+    flat = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], padded - total, 0)]),
+                        flat)
     val = jax.lax.map(lambda c: validate_candidate(sig, static, c, where["v_start"]), flat,
                       batch_size=static.batch)
-    val = {key: v.reshape(shape) for key, v in val.items()}
+    val = {key: v[:total].reshape(shape) for key, v in val.items()}
     status = (out["status"] | val.pop("status")).astype(jnp.int32)
     return dict(out, status=status, **val)
 
