@@ -82,7 +82,7 @@ def enable_compile_cache(
     - `path`: the cache directory. `$JAX_COMPILATION_CACHE_DIR`, when set, takes precedence;
       default `$XDG_CACHE_HOME` (or `~/.cache`)`/mfmjax/jax-<jax>-<jaxlib>-<cpu id>`.
     - `max_size_bytes`: size cap (default 1 GiB). The oldest entries beyond it are deleted
-      now, and by JAX as it writes when the `filelock` package is installed.
+      now (each call, so each CLI start); a long process may exceed it until the next call.
 
     **Returns:** the directory used, or None when `MFMJAX_NO_COMPILE_CACHE=1` is set (then
     nothing is changed).
@@ -111,12 +111,11 @@ def enable_compile_cache(
     jax.config.update("jax_compilation_cache_dir", directory)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    try:
-        import filelock  # noqa: F401  (JAX's size-capped cache needs it)
-
-        jax.config.update("jax_compilation_cache_max_size", int(max_size_bytes))
-    except ImportError:
-        pass
+    # JAX's own size cap (with `filelock` installed) reads an "-atime" file for every entry on
+    # each write, and plain-JAX processes sharing the directory (a notebook with
+    # JAX_COMPILATION_CACHE_DIR set) write entries without one: every later write here then
+    # failed with a warning. The cap is therefore mfmjax's `_prune`, at every enable.
+    jax.config.update("jax_compilation_cache_max_size", -1)
     if previous and os.path.abspath(previous) != directory:
         cc.reset_cache()  # JAX opens the directory once per process; reopen at the new one
     return directory

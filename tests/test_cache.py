@@ -229,3 +229,25 @@ def test_xla_defaults_opt_out():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                          check=True).stdout.split()
     assert out == ["{}", "()"]
+
+
+def test_a_plain_jax_writer_in_the_same_directory_does_not_block_writes(tmp_path):
+    """A plain-JAX process (JAX_COMPILATION_CACHE_DIR set, JAX's defaults) writes entries
+    without JAX's "-atime" files. With `filelock` installed and JAX's own size cap on, every
+    later write of an mfmjax process then failed ("Error writing persistent compilation cache
+    entry": seen in the test suite when the notebooks shared the cache). mfmjax caps the size
+    itself (`_prune`) and leaves JAX's cap off, so its entries are written. `filelock` is in
+    the dev extra so that this can fail (warnings are errors in the second process)."""
+    env = {k: v for k, v in os.environ.items() if k != "MFMJAX_NO_COMPILE_CACHE"}
+    env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path)
+    plain = ("import jax, jax.numpy as jnp; "
+             "jax.config.update('jax_persistent_cache_min_compile_time_secs', 0.0); "
+             "jax.config.update('jax_persistent_cache_min_entry_size_bytes', 0); "
+             "print(jax.jit(lambda x: x * 3.0)(jnp.ones(5)))")
+    ours = ("import warnings, jax, jax.numpy as jnp; warnings.simplefilter('error'); "
+            "import mfmjax; mfmjax.enable_compile_cache(); "
+            "print(jax.jit(lambda x: x * 5.0 + 1.0)(jnp.ones(7)))")
+    for code in (plain, ours):
+        subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True)
+    names = [p.name for p in tmp_path.iterdir() if p.name.endswith("-cache")]
+    assert len([n for n in names if n.startswith("jit__lambda")]) == 2, names
