@@ -224,3 +224,39 @@ def test_persistence_roundtrip(tmp_path):
                for x, y in zip(back.b, model.b))
     assert back.intersample == ("foh", "zoh") and float(back.delays[1]) == 0.013
     assert float(back.mf.h) == 2.0 and back.to_dict()["N"] == 4
+
+
+def test_padded_candidate_observer_equals_observe_for_every_order():
+    """`estimate`'s hold-out observer (`observe_candidate`: the search's zero-padded
+    realisation of order n_max = 4) equals `observe` for models of orders 1..3 with delays, an
+    offset and both intersample rules: E and y_sim to 1e-9 relative (two exact discretisations
+    of one system, rounding through a 2000-step recursion), x_initial in its first n states
+    and zero beyond; and every order shares one compiled program."""
+    from jaxlog import compiles
+
+    from mfmjax._observers import validation_window
+    from mfmjax._search._validation import observe_candidate, padded_candidate
+
+    sig, _ = _data()
+    sig = Signals(sig.y + 0.3, sig.u, dt=sig.dt, intersample=("foh", "zoh"), offset=True,
+                  delays=[0.05, 0.123])
+    models = [Model.from_coefficients(a, b, offset=0.3, delays=[0.05, 0.123],
+                                      intersample=("foh", "zoh"))
+              for a, b in (([1.0, 1.0], [[0.5], [0.8]]), ([2.0, 3.0, 1.0], [[1.0, 0.2], [0.5]]),
+                           (A3, B3))]
+    window = (2.0, 18.0)
+    start, length, ob = validation_window(sig, window, 10.0, 4, "test")
+    with compiles() as names:
+        for model in models:
+            ref = mfmjax.observe(model, sig, window, observer_window=10.0)
+            got = observe_candidate(sig.unlabelled(), padded_candidate(model, 4),
+                                    jnp.int32(start), length, ob)
+            n = model.n
+            assert int(got.status) == int(ref.status) == 0
+            np.testing.assert_allclose(float(got.E), float(ref.E), rtol=1e-9)
+            scale = float(jnp.max(jnp.abs(ref.y_sim)))
+            np.testing.assert_allclose(got.y_sim, ref.y_sim, rtol=0, atol=1e-9 * scale)
+            np.testing.assert_allclose(got.x_initial[:n], ref.x_initial, rtol=1e-8,
+                                       atol=1e-9 * float(jnp.max(jnp.abs(ref.x_initial))))
+            assert np.all(np.asarray(got.x_initial[n:]) == 0.0)
+    assert names.count("jit(observe_candidate)") == 1, names
