@@ -9,11 +9,11 @@ Work sharing:
   column of $c(t)$ for every (N, M) is an exact combination $C_{N,M}$ of moments, so with the
   moment Gram $H$ (one per (h, delays)) every Gram is $G_{N,M} = C_{N,M} H C_{N,M}^T$: the
   convolutions and the O(T) Gram work are shared across N, M, orders and derivatives;
-- every structure of order n is a masked sub-block of its order's largest Gram: candidates
-  are grouped by n (`_Class`: the (N, M) with N, M >= n and the structures of order n, in a
-  compact layout with only the columns order n can use), and `constrained_solve` with a column
-  mask solves each class batched (masked columns get $\theta_j = 0$), exactly the problem
-  `identify` solves for that structure. Its conditioning (flag `ill_conditioned`, `cond`)
+- every structure is a masked sub-block of the grid's largest Gram: every candidate (each
+  (N, M) with N, M >= n x each structure of order n, `Plan.cand`) is solved in the padded
+  layout with its order traced and a column mask, by `constrained_solve` batched over all of
+  them (masked columns get $\theta_j = 0$; one compiled solve for every order), exactly the
+  problem `identify` solves for that structure. Its conditioning (flag `ill_conditioned`, `cond`)
   comes from Householder tridiagonalisation + Sturm bisection (`_linalg`);
 - every candidate is then simulated from its initial-state-observer estimate on the validation
   window (eq. 14, 17) through a zero-padded realisation of order $n_{max}$ with a state mask,

@@ -1,5 +1,6 @@
-"""The compiled chunk: Grams of every (N, M) from the moments, the order classes' masked
-solves, the validation simulations; and the driver that runs a plan chunk by chunk."""
+"""The compiled chunk: Grams of every (N, M) from the moments, every candidate's masked solve
+in the padded layout, the validation simulations; and the driver that runs a plan chunk by
+chunk."""
 
 from __future__ import annotations
 
