@@ -15,6 +15,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from ._observers import MIN_WINDOW
 from ._pytree import replace_fields
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import identification_segments
@@ -73,6 +74,20 @@ def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
     one `HoldoutSearch` per record is returned."""
     fold_windows, est = holdout_folds(signals, estimation, holdout, folds)
     fit0, hold0 = fold_windows[0]
+    # the hold-out blocks must carry an observer (eq. 14) of the largest order: said here in
+    # estimate's terms, not as the search's validate/observer_window it is built from
+    n_top = max(int(v) for v in np.atleast_1d(n))
+    span = min(hw[1] - hw[0] for _, hw in fold_windows)
+    block = round(span / signals.dt) + 1
+    observer = round(OBSERVER_FRACTION * span / signals.dt) + 1
+    need = max(MIN_WINDOW, 2 * n_top)
+    if block < need or observer < MIN_WINDOW:
+        raise ValueError(
+            f"estimate(): holdout={holdout:g} leaves hold-out blocks of {block} samples, "
+            f"{observer} of them for the initial-state observer (the first "
+            f"{OBSERVER_FRACTION:.0%}); an order-{n_top} model needs at least {need} per block "
+            f"and {MIN_WINDOW} for the observer: raise holdout (at most 0.5), lower the largest "
+            "order n or give a longer record")
     plan = plan_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score="E",
                        validate=hold0, identify=list(fit0),
                        observer_window=OBSERVER_FRACTION * (hold0[1] - hold0[0]), eta=None,

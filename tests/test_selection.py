@@ -3,6 +3,7 @@ default, several outputs, and the CLI's identify/validate windows."""
 
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -124,6 +125,25 @@ def test_estimate_selects_on_held_back_data_and_reports_it():
         mfmjax.estimate(sig, h=2.0, selection="aic")
     with pytest.raises(ValueError, match=r"estimate\(\): holdout must be a share"):
         mfmjax.estimate(sig, h=2.0, holdout=0.9)
+
+
+def test_estimate_says_when_the_hold_out_blocks_are_too_short():
+    """A hold-out block must carry the initial-state observer of the largest order: a short
+    record gets an `estimate()` error naming holdout, not the search's validate window or
+    observer_window it is built from (120 samples: holdout 0.05 leaves 6-sample blocks,
+    holdout 0.2 an observer of 6 samples; 0.35 passes)."""
+    sig = simulated_experiment(Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]],
+                                                       intersample=["zoh"]),
+                               dt=0.05, n_samples=120, seed=7, noise_std=0.01)
+    for holdout, block, observer in ((0.05, 6, 2), (0.2, 24, 6)):
+        with pytest.raises(ValueError, match=rf"estimate\(\): holdout={holdout:g} leaves "
+                           rf"hold-out blocks of {block} samples, {observer} of them .* an "
+                           r"order-2 model needs at least 8 per block and 8 for the observer: "
+                           r"raise holdout"):
+            mfmjax.estimate(sig, h=0.5, n=(1, 2), N=3, M=3, holdout=holdout)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert mfmjax.estimate(sig, h=0.5, n=(1, 2), N=3, M=3, holdout=0.35).model.n in (1, 2)
 
 
 def test_estimate_outputs_one_model_per_output():
