@@ -65,6 +65,20 @@ def test_identify_values_equal_exact_kernel_length(record):
     assert diff <= 1e-10 * np.max(np.abs(np.asarray(exact.theta)))
 
 
+def test_search_new_settings_inside_a_bucket_compile_nothing(record):
+    """A search over other N, M and h values (same grid sizes, same largest N + M, largest h in
+    the same kernel bucket: 50..64 samples -> 64) and a new t0 and names reuses the compiled
+    chunk; the values reach it (the h column is the new grid's)."""
+    grid = dict(n=(1, 2, 3), m=[(0, 1), (0, 1)], simulate=False, score="J")
+    mfmjax.search(record, N=(4, 5), M=(4, 5), h=(2.5, 3.1), **grid)
+    relabelled = Signals(np.asarray(record.y), np.asarray(record.u), dt=DT, t0=77.0,
+                         intersample=record.intersample, output_name="T", input_names=["a", "b"])
+    with compiles() as names:
+        res = mfmjax.search(relabelled, N=(5, 4), M=(5, 4), h=(2.45, 2.9), **grid)
+    assert names == [], f"new search settings compiled {names}"
+    assert sorted(set(np.round(res.columns["h"], 12))) == [2.45, 2.9]
+
+
 def test_new_t0_and_names_compile_nothing(record):
     mf = ModulatingFunction(4, 5, 2.6)
     mfmjax.identify(record, ST, mf)

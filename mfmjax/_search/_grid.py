@@ -17,6 +17,7 @@ from .._gram import MIN_VALID
 from .._modulating import MAX_DEGREE
 from .._observers import validation_window
 from .._quadrature import (
+    kernel_bucket,
     kernel_length,
     legendre_coefficients,
     support_samples,
@@ -236,7 +237,8 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     cand = {key: jnp.asarray(v[col_struct]) for key, v in per_struct.items()}
     cand["nm"] = jnp.asarray(col_nm, dtype=jnp.int32)
     static = ChunkStatic(
-        n_max, m_max, ft_inputs, kernel_length(max(h_max + delay_max, span_bound), dt), degree,
+        n_max, m_max, ft_inputs,
+        kernel_bucket(kernel_length(max(h_max + delay_max, span_bound), dt)), degree,
         tuple(sources), tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]),
         len(jax.devices()), v_len, ob, bool(simulate), VALIDATION_BATCH,
     )
