@@ -37,9 +37,7 @@ def validate_candidate(sig: Signals, static: ChunkStatic, c, v_start=0):
     """E (eq. 17), fit and information criteria of one candidate on the validation window, the
     simulation started from the initial-state observer (eq. 14) of a zero-padded realisation."""
     yv = jax.lax.dynamic_slice_in_dim(sig.y, v_start, static.v_length)
-    # the drive of the validation window's samples only (the record can be 4x longer)
-    forced, live = padded_forced(sig, c, v_start + jnp.arange(static.v_length))
-    obs = observe_forced(forced, yv, sig.dt, 0, static.v_length, static.ob_length, live)
+    obs = observe_padded(sig, c, v_start, static.v_length, static.ob_length)
     status = obs.status | jnp.where(hurwitz(c["a"]), 0, Status.UNSTABLE)
     Nv = static.v_length
     loglik = Nv * jnp.log(jnp.maximum(obs.E / (Nv * sig.dt), 1e-300))
@@ -60,10 +58,16 @@ def padded_candidate(model, n_max: int) -> dict:
             "delays": np.asarray(model.delays, dtype=np.float64).reshape(K)}
 
 
-@jit
-def observe_candidate(sig: Signals, c, start, length: int, ob_length: int):
+def observe_padded(sig: Signals, c, start, length: int, ob_length: int):
     """The observers (eq. 14-15) and E (eq. 17) of a zero-padded candidate on samples
-    `start .. start + length - 1` (`start` traced): `observe_window` for any order at once."""
+    `start .. start + length - 1` (`start` traced): `observe_window` for any order at once,
+    the drive computed for the window's samples only (the record can be much longer)."""
     yw = jax.lax.dynamic_slice_in_dim(sig.y, start, length)
     forced, live = padded_forced(sig, c, start + jnp.arange(length))
     return observe_forced(forced, yw, sig.dt, 0, length, ob_length, live)
+
+
+@jit
+def observe_candidate(sig: Signals, c, start, length: int, ob_length: int):
+    """`observe_padded` compiled: `estimate`'s hold-out observer, one program for every order."""
+    return observe_padded(sig, c, start, length, ob_length)
