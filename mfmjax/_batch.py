@@ -6,15 +6,16 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
+import numpy as np
 
 from ._jit import jit
 from ._pytree import replace_fields
 
 
 def stack(trees):
-    """Pytrees of one structure -> one pytree with a leading batch axis."""
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+    """Concrete pytrees of one structure -> one pytree with a leading batch axis (stacked on
+    the host and put back in one transfer, like `unstack`: no program per count and shape)."""
+    return jax.device_put(jax.tree.map(lambda *xs: np.stack(xs), *jax.device_get(trees)))
 
 
 def unstack(tree) -> list:
@@ -68,8 +69,7 @@ def map_pairs(fn, records, models, **kw) -> list:
                 out[idx[0]] = fn(records[idx[0]], models[idx[0]], **kw)
                 continue
             sig = records[idx[0]].unlabelled()
-            res = _mapped(fn, kw, sig, jnp.stack([records[i].y for i in idx]),
-                          jnp.stack([records[i].u for i in idx]),
+            res = _mapped(fn, kw, sig, *stack([(records[i].y, records[i].u) for i in idx]),
                           stack([models[i] for i in idx]))
         except ValueError:
             continue

@@ -7,6 +7,7 @@ import os
 
 import equinox as eqx
 import jax
+import numpy as np
 
 # XLA:CPU's new fusion emitters (on by default in jaxlib 0.10) took 1.3-2.1x the compile time
 # on this library's programs (many small fusions); with them off, warm calls ran 0.68-0.96x,
@@ -60,3 +61,11 @@ def _tuned(make, fun, jitkwargs):
     if hasattr(tuned, "_cached"):
         call._cached = tuned._cached
     return call
+
+
+def device(x, dtype=None):
+    """One host array (NumPy array, number or nested list) on the device without compiling
+    anything: in jax 0.10 `jnp.asarray` of a NumPy array or a number runs a compiled `stage`
+    program per shape and dtype (and `jnp.stack` one per count and shape), each tens of ms on
+    a first call; `device_put` runs none (it also takes pytrees of NumPy arrays)."""
+    return jax.device_put(np.asarray(x, dtype=dtype))

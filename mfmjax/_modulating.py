@@ -96,35 +96,37 @@ def as_values(mf: ModulatingFunction) -> ModulatingFunction:
     return replace_fields(mf, N=value(mf.N), M=value(mf.M), h_max=None)
 
 
-def _falling(x, j: int):
+def _falling(x, j: int, xp=jnp):
     """Falling factorial x (x-1) ... (x-j+1) (1 for j = 0); x may be real."""
-    out = jnp.ones_like(jnp.asarray(x, dtype=jnp.float64))
+    out = xp.ones_like(xp.asarray(x, dtype=xp.float64))
     for q in range(j):
         out = out * (x - q)
     return out
 
 
-def phi_scaled(r, N, M, i: int):
+def phi_scaled(r, N, M, i: int, *, xp=jnp):
     r"""$p_i(r) = d^i/dr^i [r^N (1-r)^M]$ on $r \in [0, 1]$ (closed form, Leibniz rule).
 
     `i` is a static int; `r` an array; `N`, `M` numbers or arrays. Values outside $[0,1]$ are 0.
+    `xp=numpy` evaluates on the host (plans: no compiled program per shape).
     """
-    require_x64("phi_scaled")
-    r = jnp.asarray(r, dtype=jnp.float64)
+    if xp is jnp:
+        require_x64("phi_scaled")
+    r = xp.asarray(r, dtype=xp.float64)
     inside = (r > 0) & (r < 1)
-    rs = jnp.where(inside, r, 0.5)  # keeps gradients finite at and outside the ends
-    total = jnp.zeros_like(rs)
+    rs = xp.where(inside, r, 0.5)  # keeps gradients finite at and outside the ends
+    total = xp.zeros_like(rs)
     for j in range(i + 1):
         term = (
             math.comb(i, j)
-            * _falling(N, j)
+            * _falling(N, j, xp)
             * (-1.0) ** (i - j)
-            * _falling(M, i - j)
+            * _falling(M, i - j, xp)
             * rs ** (N - j)
             * (1.0 - rs) ** (M - i + j)
         )
         total = total + term
-    return jnp.where(inside, total, 0.0)
+    return xp.where(inside, total, 0.0)
 
 
 def phi(t, mf: ModulatingFunction, i: int = 0):

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._jit import jit
+from ._jit import device, jit
 from ._linalg import expm
 from ._model import Model
 from ._optim import USABLE
@@ -87,14 +87,19 @@ def free_parameters(model: Model):
 
 
 def with_parameters(model: Model, theta):
+    """`model` with the free parameters `theta` (ordered as `free_parameters`); a NumPy
+    `theta` is split on the host (no program per structure)."""
+    xp = np if isinstance(theta, np.ndarray) else jnp
     n = model.n
-    a = jnp.concatenate([theta[:n], jnp.ones(1)])
+    a = xp.concatenate([theta[:n], xp.ones(1)])
     pos, bs = n, []
     for bk in model.b:
         bs.append(theta[pos : pos + bk.shape[0]])
         pos += bk.shape[0]
     offset = theta[pos] if model.has_offset else model.offset
-    return eqx.tree_at(lambda m: (m.a, m.b, m.offset), model, (a, tuple(bs), offset))
+    new = (a, tuple(bs), offset)
+    return eqx.tree_at(lambda m: (m.a, m.b, m.offset), model,
+                       jax.device_put(new) if xp is np else new)
 
 
 class _Residual(eqx.Module):
@@ -174,9 +179,15 @@ def output_error(
     if not isinstance(model, Model):
         raise TypeError("output_error(): model must be a Model")
     residual, meta = _prepare(signals, model, window)
-    z, result, n_steps = _lm(residual, jnp.zeros(residual.size), jnp.asarray(max_steps),
-                             jnp.asarray(rtol), jnp.asarray(atol))  # values: no new program
+    z, result, n_steps = _lm(residual, *_lm_arguments(residual.size, max_steps, rtol, atol))
     return _finish(residual, meta, z, result, n_steps)
+
+
+def _lm_arguments(size: int, max_steps, rtol, atol):
+    """z0 = 0 and the limits as device values (a new limit is not a new program; put, not
+    computed, so that no eager program runs either)."""
+    return jax.device_put((np.zeros(size), np.asarray(max_steps), np.asarray(rtol, np.float64),
+                           np.asarray(atol, np.float64)))
 
 
 def _prepare(signals: Signals, model: Model, window):
@@ -190,13 +201,14 @@ def _prepare(signals: Signals, model: Model, window):
     obs = observe(model, signals, window)
     k0 = 0 if window is None else round((float(window[0]) - signals.t0) / signals.dt)
     length = int(obs.y_sim.shape[0])
-    yv = jax.lax.dynamic_slice_in_dim(signals.y, k0, length)
+    yv = np.asarray(signals.y)[k0 : k0 + length]  # host glue in NumPy: no eager programs
     names, theta0 = free_parameters(model)
     scale = np.maximum(np.abs(theta0), 1e-8 * max(np.max(np.abs(theta0)), 1e-300))
-    x_scale = np.maximum(np.abs(np.asarray(obs.x_initial)), 1e-6 * float(jnp.std(yv)) + 1e-300)
-    residual = _Residual(model.unlabelled(), signals.u, yv, jnp.asarray(theta0),
-                         jnp.asarray(scale), obs.x_initial, jnp.asarray(x_scale),
-                         jnp.asarray(k0, dtype=jnp.int32), signals.dt, length)
+    x_scale = np.maximum(np.abs(np.asarray(obs.x_initial)), 1e-6 * float(np.std(yv)) + 1e-300)
+    yv, theta0_d, scale_d, x_scale_d, k0_d = jax.device_put((yv, theta0, scale, x_scale,
+                                                             np.int32(k0)))
+    residual = _Residual(model.unlabelled(), signals.u, yv, theta0_d, scale_d, obs.x_initial,
+                         x_scale_d, k0_d, signals.dt, length)
     return residual, (original, model, was_unstable, names, theta0, scale, x_scale, obs.x_initial)
 
 
@@ -205,24 +217,25 @@ def _finish(residual, meta, z, result, n_steps) -> OutputErrorFit:
     the Gauss-Newton covariance there; warns when not converged."""
     original, model, was_unstable, names, theta0, scale, x_scale, x_init = meta
     p_theta, length, dt = theta0.size, residual.length, residual.dt
-    z0 = jnp.zeros_like(z)
+    z0 = device(np.zeros(z.shape))
     code = LM_CODES[int(result)]
     r0, r = _residual_at(residual, z0), _residual_at(residual, z)
-    E0 = float(jnp.sum(r0**2)) * dt
-    E1 = float(jnp.sum(r**2)) * dt
+    E0 = float(np.sum(np.asarray(r0) ** 2)) * dt
+    E1 = float(np.sum(np.asarray(r) ** 2)) * dt
     # out of steps but better than the start: kept (the code says so); otherwise the start
     ok = code in USABLE and math.isfinite(E1) and E1 <= E0
     if not ok:
         z, E1 = z0, E0
-    theta = np.asarray(theta0 + scale * np.asarray(z[:p_theta]))
-    x0 = x_init + jnp.asarray(x_scale) * z[p_theta:]
+    z_host = np.asarray(z)
+    theta = np.asarray(theta0 + scale * z_host[:p_theta])
+    x0 = device(np.asarray(x_init) + x_scale * z_host[p_theta:])
     Jz = _jacobian(residual, z)  # d r / d z; parameters = theta0 + scale * z
     Jp = np.asarray(Jz) / np.concatenate([scale, x_scale])[None, :]
     dof = max(length - Jp.shape[1], 1)
     sigma2 = float(np.sum(np.asarray(r) ** 2)) / dof if ok else float(np.sum(
         np.asarray(r0) ** 2)) / dof
     cov = sigma2 * np.linalg.pinv(Jp.T @ Jp)
-    new = with_parameters(model, jnp.asarray(theta)) if ok else model
+    new = with_parameters(model, theta) if ok else model
     converged = ok and code == "successful"
     if not converged:
         warnings.warn(f"output_error(): not converged ({code} after {int(n_steps)} steps); the "
@@ -251,10 +264,9 @@ def output_error_many(records, models, *, max_steps: int = 100, rtol: float = 1e
     live = [i for i, p in enumerate(prepared) if p is not None]
     for idx in groups([prepared[i][0] for i in live]):
         idx = [live[j] for j in idx]
-        limits = jnp.asarray(max_steps), jnp.asarray(rtol), jnp.asarray(atol)
+        z0, *limits = _lm_arguments(prepared[idx[0]][0].size, max_steps, rtol, atol)
         if len(idx) == 1:  # a single pair: the program `output_error` uses
-            res = prepared[idx[0]][0]
-            solved = [_lm(res, jnp.zeros(res.size), *limits)]
+            solved = [_lm(prepared[idx[0]][0], z0, *limits)]
         else:
             solved = zip(*map(unstack, _lm_many(stack([prepared[i][0] for i in idx]), *limits)))
         for i, (z, result, steps) in zip(idx, solved):

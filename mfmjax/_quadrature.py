@@ -79,26 +79,27 @@ def legendre_weights(degree: int, h, dt: float, rule: str, delay, length: int):
     return profile_weights(lambda r: shifted_legendre(r, degree), h, dt, rule, delay, length)
 
 
-def shifted_legendre(r, degree: int):
+def shifted_legendre(r, degree: int, xp=jnp):
     """P_q(2r - 1) for q = 0..degree, stacked on a new leading axis (three-term recurrence)."""
-    x = 2.0 * jnp.asarray(r) - 1.0
-    out = [jnp.ones_like(x), x]
+    x = 2.0 * xp.asarray(r) - 1.0
+    out = [xp.ones_like(x), x]
     for q in range(1, degree):
         out.append(((2 * q + 1) * x * out[q] - q * out[q - 1]) / (q + 1))
-    return jnp.stack(out[: degree + 1])
+    return xp.stack(out[: degree + 1])
 
 
 def legendre_coefficients(N, M, i: int, degree: int) -> np.ndarray:
     r"""$c_q$ with $p_i(r) = \sum_q c_q P_q(2r-1)$ (exact projection by Gauss-Legendre).
 
     `N`, `M` may be equal-length sequences: the result is then (len, degree + 1), one row per
-    (N, M), from one evaluation (a search's plan needs hundreds of them)."""
+    (N, M), from one evaluation (a search's plan needs hundreds of them). On the host, in
+    NumPy: a plan compiles nothing."""
     x, w = np.polynomial.legendre.leggauss(degree + 2)
-    r = jnp.asarray((x + 1) / 2)
-    Nv = jnp.asarray(N, dtype=jnp.float64)[..., None]
-    Mv = jnp.asarray(M, dtype=jnp.float64)[..., None]
-    vals = np.asarray(phi_scaled(r, Nv, Mv, i))  # (..., nodes)
-    basis = np.asarray(shifted_legendre(r, degree))  # (degree + 1, nodes)
+    r = (x + 1) / 2
+    Nv = np.asarray(N, dtype=np.float64)[..., None]
+    Mv = np.asarray(M, dtype=np.float64)[..., None]
+    vals = phi_scaled(r, Nv, Mv, i, xp=np)  # (..., nodes)
+    basis = shifted_legendre(r, degree, np)  # (degree + 1, nodes)
     return (2 * np.arange(degree + 1) + 1) * ((w * vals) @ basis.T) / 2
 
 

@@ -249,7 +249,11 @@ class Signals(eqx.Module):
         if not 0 <= a < b <= T - 1:
             raise ValueError(f"Signals.window(): ({float(t0):g}, {float(t1):g}) must lie inside "
                              f"the record [{self.t0:g}, {self.t0 + (T - 1) * dt:g}]")
-        return replace_fields(self, y=self.y[a:b + 1], u=self.u[a:b + 1], t0=self.t0 + a * dt)
+        if _b.is_traced(self.y) or _b.is_traced(self.u):
+            y, u = self.y[a:b + 1], self.u[a:b + 1]
+        else:  # sliced on the host: no program per window length
+            y, u = jax.device_put((np.asarray(self.y)[a:b + 1], np.asarray(self.u)[a:b + 1]))
+        return replace_fields(self, y=y, u=u, t0=self.t0 + a * dt)
 
     @staticmethod
     def concatenate(records: Sequence[Signals]) -> tuple[Signals, list]:

@@ -17,6 +17,10 @@ def test_phi_matches_reference(N, M, h):
         got = np.asarray(phi(t, mf, i))
         # Leibniz form vs monomial expansion: both exact to rounding of O(2^(N+M)) terms
         assert np.max(np.abs(got - ref)) <= 1e-12 * np.max(np.abs(ref)), i
+        # the host evaluation (search plans): the same Leibniz form in NumPy, same bound
+        host = h ** (N + M - i) * mfmjax.phi_scaled(t / h, N, M, i, xp=np)
+        assert isinstance(host, np.ndarray)
+        assert np.max(np.abs(host - ref)) <= 1e-12 * np.max(np.abs(ref)), i
 
 
 def test_phi_vanishes_at_ends_and_is_consistent():

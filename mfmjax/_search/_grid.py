@@ -20,7 +20,6 @@ from .._quadrature import (
     kernel_bucket,
     kernel_length,
     legendre_coefficients,
-    support_samples,
 )
 from .._signals import Signals
 
@@ -178,7 +177,7 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     h_max = max(h_grid)
     delay_max = max((max(dk) for dk in delays), default=0.0)
     dt = signals.dt
-    first = int(support_samples(h_max + delay_max, dt))
+    first = kernel_length(h_max + delay_max, dt) - 1  # support_samples, on the host
     p_needed = n_max + 1 + sum(mk + 1 for mk in m_max) + int(signals.offset)
     segments = identification_segments(signals, identify)
     valid = sum(max(b - a - first, 0) for a, b in segments)  # samples the Gram integral sums
@@ -190,7 +189,7 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
         )
     v0, v_len, ob = validation_window(signals, validate, observer_window, n_max, "search")
     p = p_needed
-    eta = jnp.ones(p) if eta is None else jnp.asarray(eta, dtype=jnp.float64)
+    eta = jax.device_put(np.ones(p)) if eta is None else jnp.asarray(eta, dtype=jnp.float64)
     if eta.shape != (p,):
         raise ValueError(f"search(): eta must have {p} entries (padded layout)")
     # moment sources and the Legendre coefficients of every column for every (N, M)
@@ -215,8 +214,8 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
         coef[:, j, src] += sign * by_deriv[i]
         if minus is not None:
             coef[:, j, minus] -= sign * by_deriv[i]
-    nm = {"N": jnp.asarray([a for a, _ in nm_pairs]), "M": jnp.asarray([b for _, b in nm_pairs]),
-          "coef": jnp.asarray(coef)}
+    nm = jax.device_put({"N": np.asarray([a for a, _ in nm_pairs]),  # device_put: no program
+                         "M": np.asarray([b for _, b in nm_pairs]), "coef": coef})
     # the candidates of one (h, delays) setting, order class by order class: every (N, M) with
     # N, M >= n x every structure of order n; each solved in the padded layout with its mask
     col_nm, col_struct = [], []
@@ -234,8 +233,8 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
         "k": np.asarray([st[0] + sum(mk + 1 for mk in st[1]) + int(signals.offset)
                          for st in structs], dtype=np.float64),
     }
-    cand = {key: jnp.asarray(v[col_struct]) for key, v in per_struct.items()}
-    cand["nm"] = jnp.asarray(col_nm, dtype=jnp.int32)
+    cand = jax.device_put({**{key: v[col_struct] for key, v in per_struct.items()},
+                           "nm": col_nm.astype(np.int32)})
     static = ChunkStatic(
         n_max, m_max, ft_inputs,
         kernel_bucket(kernel_length(max(h_max + delay_max, span_bound), dt)), degree,
@@ -246,8 +245,8 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     n_dev = mesh.devices.size
     chunk = n_dev * math.ceil(min(chunk_size, len(hd)) / n_dev)  # no padding beyond the grid
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("c"))
-    where = {"segments": jnp.asarray(segments, dtype=jnp.int32),
-             "v_start": jnp.asarray(v0, dtype=jnp.int32)}
+    where = jax.device_put({"segments": np.asarray(segments, dtype=np.int32),
+                            "v_start": np.asarray(v0, dtype=np.int32)})
     return Plan(static, eta, structs, cand, nm, hd, combos, (col_nm, col_struct),
                 chunk, sharding, score, signals.n_samples, K, where)
 

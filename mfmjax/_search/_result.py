@@ -6,9 +6,9 @@ import json
 import math
 
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 
+from .._jit import device
 from .._model import Model, finite_or_none, plain_number
 from .._modulating import ModulatingFunction
 from .._status import describe
@@ -72,16 +72,17 @@ class SearchResult(eqx.Module):
         r = self.row(i)
         c, j = self.columns, int(self.rank[i])
         structure = Structure(r["n"], r["m"])
+        f64 = np.float64
         return Model(
-            a=jnp.asarray(r["a"]),
-            b=tuple(jnp.asarray(bk) for bk in r["b"]),
-            offset=jnp.asarray(r["offset"] or 0.0),
-            delays=jnp.asarray(r["delays"]),
-            theta=jnp.asarray(_compact_theta(c["theta"][j], r["n"], r["m"], self)),
-            J=jnp.asarray(c["J_raw"][j]),
-            J_rel=jnp.asarray(c["J"][j]),
-            cond=jnp.asarray(c["cond"][j]),
-            status=jnp.asarray(int(c["status"][j]), dtype=jnp.int32),
+            a=device(r["a"], f64),
+            b=tuple(device(bk, f64) for bk in r["b"]),
+            offset=device(r["offset"] or 0.0, f64),
+            delays=device(r["delays"], f64),
+            theta=device(_compact_theta(c["theta"][j], r["n"], r["m"], self), f64),
+            J=device(c["J_raw"][j], f64),
+            J_rel=device(c["J"][j], f64),
+            cond=device(c["cond"][j], f64),
+            status=device(int(c["status"][j]), np.int32),
             mf=ModulatingFunction(r["N"], r["M"], r["h"]),
             structure=structure,
             intersample=self.intersample,
