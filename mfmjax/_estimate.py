@@ -98,7 +98,10 @@ def estimate(
       estimate is kept only where it predicts the hold-out 5 % better than every SRIVC fit
       (real data whose noise is not white can favour it). Structures compete on the hold-out
       E times Akaike's FPE factor $(1 + 2k/N_h)$ (k free parameters, $N_h$ hold-out samples;
-      `parsimonious`), so a structure nesting a smaller one must predict measurably better.
+      `parsimonious`), so a structure nesting a smaller one must predict measurably better;
+      SRIVC structures within `HOLDOUT_TIE` (5 %) of the best are near ties, decided by BIC
+      over all estimation data (fit parts' simulation error, every parameter paying ln T,
+      plus the hold-out blocks'; `near_tie_by_bic`).
       Where the winner's SRIVC does not converge on all estimation data, the next-ranked SRIVC
       candidate that converges is returned (up to `FALLBACKS` tries), else output error from
       SRIVC's best iterate where it converges, else that iterate (said in `notes`). Each
@@ -197,7 +200,9 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
         j = int(rank_by(sel.refit, "bic")[0])
         by_bic = (int(sel.refit.columns["n"][j]), [int(v) for v in sel.refit.columns["m"][j]])
         texts.append(f"mean hold-out E over {blocks} ({holdout:.0%} of the estimation data "
-                     f"each, fitted on the rest); BIC on the estimation data would pick "
+                     f"each, fitted on the rest), SRIVC structures within "
+                     f"{HOLDOUT_TIE:.0%} of the best decided by their BIC over all estimation "
+                     f"data; the MFM search's BIC on the estimation data would pick "
                      f"n={by_bic[0]} m={by_bic[1]}")
     if len(sel0.estimation) > 1:
         # several experiments: the stages after MFM simulate one record; keep MFM
