@@ -420,9 +420,9 @@ def _predict_many(sig, cs, start: int, ob: int):
 def _candidate(config: OnlineConfig, model: dict) -> dict:
     K = config.n_inputs
     k = int(model["n"]) + sum(int(v) + 1 for v in model["m"]) + int(config.offset)
-    return {"a": jnp.asarray(model["a"]), "b": jnp.asarray(model["b"]),
-            "offset": jnp.asarray(model["offset"]), "n": jnp.asarray(model["n"]),
-            "delays": jnp.asarray(model["delays"]).reshape(K), "k": jnp.asarray(float(k))}
+    host = {"a": model["a"], "b": model["b"], "offset": model["offset"], "n": model["n"],
+            "delays": np.reshape(model["delays"], K), "k": float(k)}
+    return jax.device_put({key: np.asarray(v) for key, v in host.items()})  # no eager program
 
 
 def _take(state: OnlineState, start: int, length: int):

@@ -135,10 +135,11 @@ class Signals(eqx.Module):
         if T < 2:
             raise ValueError(f"Signals(): y has {T} sample(s); a record needs at least 2")
         if u is None:
-            u = jnp.zeros((T, 0), dtype=jnp.float64)
-        u = jnp.asarray(_b.array("Signals", "u", u, finite=False), dtype=jnp.float64)
-        if u.ndim == 1:
+            u = np.zeros((T, 0))
+        u = _b.array("Signals", "u", u, finite=False)
+        if u.ndim == 1:  # on the host where concrete: no eager program per shape
             u = u[:, None]
+        u = jnp.asarray(u, dtype=jnp.float64)
         if u.ndim != 2:
             raise ValueError(f"Signals(): u must have shape (T, K), got {u.shape}")
         if u.shape[0] != T:
@@ -191,9 +192,10 @@ class Signals(eqx.Module):
                 f"Signals(): unknown output_rule {output_rule!r}; use 'cubic' or 'foh'"
             )
         if delays is None:
-            delays = jnp.zeros(K, dtype=jnp.float64)
-        delays = jnp.atleast_1d(jnp.asarray(_b.array("Signals", "delays", delays, finite=False),
-                                            dtype=jnp.float64))
+            delays = np.zeros(K)
+        delays = _b.array("Signals", "delays", delays, finite=False)
+        delays = jnp.atleast_1d(jnp.asarray(delays, dtype=jnp.float64)) if _b.is_traced(delays) \
+            else jax.device_put(np.atleast_1d(np.asarray(delays, dtype=np.float64)))
         if delays.shape != (K,):
             raise ValueError(
                 f"Signals(): delays needs one entry per input ({K}), got shape {delays.shape}"
@@ -212,15 +214,16 @@ class Signals(eqx.Module):
         )
         if len(names) != K:
             raise ValueError(f"Signals(): input_names needs {K} names, got {len(names)}")
-        for label, arr in [(output_name, y)] + [(names[k], u[:, k]) for k in range(K)]:
-            if _concrete(arr):
-                finite = np.isfinite(np.asarray(arr))
-                if not finite.all():
-                    row = int(np.argmin(finite))
-                    raise ValueError(
-                        f"Signals(): column {label!r} has a NaN or inf sample at row {row}; "
-                        "remove or interpolate it before identification"
-                    )
+        host_y = [(output_name, np.asarray(y))] if _concrete(y) else []
+        host_u = [(names[k], np.asarray(u)[:, k]) for k in range(K)] if _concrete(u) else []
+        for label, arr in host_y + host_u:  # columns checked on the host
+            finite = np.isfinite(arr)
+            if not finite.all():
+                row = int(np.argmin(finite))
+                raise ValueError(
+                    f"Signals(): column {label!r} has a NaN or inf sample at row {row}; "
+                    "remove or interpolate it before identification"
+                )
         if _concrete(y) and _concrete(u):
             _refuse_output_as_input(np.asarray(y), np.asarray(u), output_name, names)
         self.y, self.u, self.delays = y, u, delays

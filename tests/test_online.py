@@ -425,8 +425,12 @@ def _forehearth(ex, mode, **kw):
     return run_experiment(ex, mode=mode, **kw)
 
 
-# today's demo (paper mode, seed 0), measured before issue 17's changes (commit 46337ac)
-PAPER_TODAY = {1: (1.095647457093332, 6), 2: (0.6043796413584612, 12)}
+# today's demo (paper mode, seed 0), measured before issue 17's changes (commit 46337ac):
+# 1.095647457093332 and 0.6043796413584612, the same models. Since the search plan computes its
+# Legendre coefficients in NumPy on the host (no eager XLA programs), they differ from XLA's by
+# rounding (7e-16 relative), and Algorithm 1's chain of identifications carries that to 1.2e-9
+# and 3.0e-9 relative in the MSE: the values below, re-measured then; models and counts equal.
+PAPER_TODAY = {1: (1.09564745574115, 6), 2: (0.6043796431933918, 12)}
 
 
 @pytest.mark.slow
