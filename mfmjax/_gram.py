@@ -10,8 +10,6 @@ $\theta$. The Gram integral runs over the valid samples $t_k \ge t_0 + \max_k(\t
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -20,7 +18,6 @@ import numpy as np
 from ._boundary import require_x64
 from ._modulating import ModulatingFunction, phi_scaled
 from ._quadrature import (
-    EDGE,
     delayed_samples,
     gregory_weights,
     kernel_bucket,
@@ -180,7 +177,7 @@ def check_record_length(signals: Signals, mf: ModulatingFunction, n_params: int)
     if isinstance(mf.h, jax.core.Tracer) or isinstance(signals.delays, jax.core.Tracer):
         return
     span = float(np.max(np.asarray(mf.h))) + float(np.max(np.asarray(signals.delays), initial=0.0))
-    first = math.ceil(span / signals.dt - EDGE)  # support_samples, in host arithmetic
+    first = kernel_length(span, signals.dt) - 1  # support_samples, on the host (as plan_search)
     need = max(MIN_VALID, 2 * n_params)
     if signals.n_samples - first < need:
         raise ValueError(
