@@ -11,7 +11,6 @@ equation error is biased under output noise; SRIVC removes that bias at a few ms
 from __future__ import annotations
 
 import warnings
-from functools import partial
 
 import equinox as eqx
 import numpy as np
@@ -28,7 +27,7 @@ from ._search._grid import CHUNK_SETTINGS
 from ._search._validation import observe_candidate, padded_candidate
 from ._selection import OBSERVER_FRACTION, holdout_search, rank_by
 from ._signals import Signals
-from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc
+from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc, srivc_many
 from ._status import Status, describe
 
 
@@ -278,8 +277,8 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
         warnings.simplefilter("ignore")
         mfm = hold_scores([(r, fs) for (r, _), fs in zip(cand, firsts)])
         sv_fits = per_fold(srivc, [(r, [stabilised(x)[0] for x in fs])
-                                   for (r, _), fs in zip(cand, firsts)], max_iter=max_iter,
-                           tol=tol)
+                                   for (r, _), fs in zip(cand, firsts)], n_max=n_max,
+                           max_iter=max_iter, tol=tol)
         sv = [None if v is None else [f.model for f in v] for v in sv_fits]
         live = [k for k, v in enumerate(sv) if v is not None]
         sv_score = dict(zip(live, hold_scores([(cand[k][0], sv[k]) for k in live])))
@@ -316,8 +315,8 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
     with warnings.catch_warnings():  # `estimate` warns itself for a stage that did not converge
         warnings.simplefilter("ignore")
         fits = dict(zip(sv_rec, _staged_many(srivc, [est_sigs[r] for r in sv_rec],
-                                             [seeds[r][0] for r in sv_rec], max_iter=max_iter,
-                                             tol=tol)))
+                                             [seeds[r][0] for r in sv_rec], n_max=n_max,
+                                             max_iter=max_iter, tol=tol)))
         # SRIVC that did not converge on all estimation data: the next SRIVC candidate in the
         # hold-out ranking that converges replaces it (at most FALLBACKS tries per record)
         ranked = [sorted((x for x in t if x[3] == "srivc" and x[2] != best[r][2]), key=key)
@@ -328,7 +327,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
                     and fits[r] is not None and not fits[r].converged]
             alt = [stabilised(sels[r].refit.best(ranked[r][attempt][2])) for r in redo]
             for r, a, fit in zip(redo, alt, _staged_many(
-                    srivc, [est_sigs[r] for r in redo], [a[0] for a in alt],
+                    srivc, [est_sigs[r] for r in redo], [a[0] for a in alt], n_max=n_max,
                     max_iter=max_iter, tol=tol)):
                 if fit is not None and fit.converged:
                     m0 = fits[r].model
@@ -454,8 +453,9 @@ def _staged_many(stage, records, models, **kw) -> list:
         starts.append(model)
     if not sigs:
         return []
-    outs = (output_error_many if stage is output_error else partial(map_pairs, stage))(
-        sigs, starts, **kw)
+    if stage is srivc:  # every structure zero-padded to one order: one SRIVC program
+        kw.setdefault("n_max", max(m.n for m in starts))
+    outs = {output_error: output_error_many, srivc: srivc_many}[stage](sigs, starts, **kw)
     return [out if out is None or not model.has_offset else _shifted_back(out, ybar, ubar)
             for out, model, (ybar, ubar) in zip(outs, models, shifted)]
 

@@ -13,6 +13,7 @@ data the true parameters are an exact fixed point of the iteration (module docst
 \\mathrm{cond}(\\hat\\Phi_{eq})$ (rounding accumulated over T samples).
 """
 
+import warnings
 
 import equinox as eqx
 import jax
@@ -109,6 +110,36 @@ def test_iterates_match_twin(noisy):
     assert np.allclose(_theta(fit.model), want["theta"], rtol=tol, atol=0)
     y = mfmjax.simulate(fit.model, sig.u, dt=DT)
     assert float(jnp.sum((sig.y - y) ** 2) * DT) == pytest.approx(float(fit.E), rel=1e-9)
+
+
+@pytest.mark.parametrize("m", [(0, 0), (2, 1)])
+def test_numerator_orders_are_values(noisy, m):
+    """Every numerator order of one n runs the program of the fixture's m = (1, 0) (the orders
+    are values in a zero-padded theta): nothing compiles, and the fit equals the twin's for
+    that structure (m = (2, 1): a feed-through on input 1) to the bound of the module
+    docstring."""
+    sig, start = noisy
+    mfmjax.srivc(sig, start)  # the (1, 0) program
+    b = [[0.5, 0.3, 0.0][: m[0] + 1], [0.7, 0.1][: m[1] + 1]]
+    other = mfmjax.Model.from_coefficients([0.8 * 1.1, 1.2 / 1.1, 1.0], b, offset=0.2,
+                                           delays=WHOLE, intersample=MODES)
+    with compiles() as names:
+        fit = mfmjax.srivc(sig, other)
+    assert names == [], f"compiled for m={m}: {names}"
+    want = ref.srivc(_theta(other), np.asarray(sig.y), np.asarray(sig.u), 2, m, MODES, DT,
+                     lags=LAGS, has_offset=True)
+    assert want["status"] == 0 and int(fit.status) == 0
+    assert int(fit.iterations) == want["iterations"]
+    _, _, Ph = ref.step(want["theta"], np.asarray(sig.y), np.asarray(sig.u), 2, m, MODES, DT,
+                        LAGS, True)
+    tol, cond = _bounds(want["theta"], Ph)
+    assert 1e-14 < tol < 1e-7
+    # norm-wise (the bound's own sense): the extra coefficients' true values are 0, so their
+    # estimates are near zero and an elementwise relative error would measure nothing
+    err = np.linalg.norm(np.asarray(fit.theta) - want["theta"]) / np.linalg.norm(want["theta"])
+    assert err <= tol
+    assert np.allclose(np.asarray(fit.std_errors), want["std"], rtol=tol * cond, atol=0)
+    assert fit.model.m == m and len(fit.names) == 2 + sum(m) + 2 + 1
 
 
 def test_first_iterates_match_twin(noisy):
@@ -218,3 +249,37 @@ def test_boundary_errors(noisy):
     plain = Signals(sig.y, sig.u, dt=DT, intersample=MODES)
     with pytest.raises(ValueError, match="srivc\\(\\): model.has_offset=True"):
         mfmjax.srivc(plain, start)
+
+
+def test_many_structures_share_one_program():
+    """`srivc_many` (estimate's SRIVC stage) pads every structure to one order: nine pairs of
+    three structures (n = 1 and 2, m_k from 0 to 2) run as one chunk of `BATCH` pairs and one
+    single pair; the single pair is the program a direct n = 2 fit uses, so after the direct
+    fits only the chunk compiles, once. Each result equals the direct fit of its pair (same
+    operations on zero-padded arrays: rounding-level differences, 1e-10 as in the jit test)."""
+    from mfmjax._batch import BATCH
+    from mfmjax._srivc import srivc_many
+
+    structures = [([0.5, 1.0], [[0.3], [0.6]]), ([0.8, 1.2, 1.0], [[0.5], [0.7]]),
+                  ([0.8, 1.2, 1.0], [[0.5, 0.3, 0.1], [0.7, 0.2]])]
+    recs, starts = [], []
+    for seed in (3, 4, 5):
+        sig = _record(seed=seed)[1]
+        for a, b in structures:
+            recs.append(sig)
+            starts.append(mfmjax.Model.from_coefficients(a, b, offset=0.2, delays=WHOLE,
+                                                         intersample=MODES))
+    assert len(recs) == BATCH + 1
+    with warnings.catch_warnings():  # some structures stop at max_iter: compared as they are
+        warnings.simplefilter("ignore")
+        direct = [mfmjax.srivc(s, m) for s, m in zip(recs, starts)]
+    with compiles() as names:
+        many = srivc_many(recs, starts, n_max=2)
+    assert names == ["jit(_mapped)"], names
+    for d, f in zip(direct, many):
+        assert f.model.n == d.model.n and f.model.m == d.model.m and f.names == d.names
+        assert int(f.status) == int(d.status) and int(f.iterations) == int(d.iterations)
+        np.testing.assert_allclose(np.asarray(f.theta), np.asarray(d.theta), rtol=1e-10)
+        np.testing.assert_allclose(np.asarray(f.std_errors), np.asarray(d.std_errors),
+                                   rtol=1e-8)
+
