@@ -30,13 +30,15 @@ BATCH = 8  # pairs per mapped call: a batch runs in chunks of BATCH and single p
 
 
 def groups(trees) -> list[list[int]]:
-    """Indices of `trees` grouped by pytree structure (static fields included), each group cut
+    """Indices of `trees` grouped by pytree structure (static fields included) and leaf shapes,
+    each group cut
     into chunks of `BATCH` and single pairs: a batch's group sizes vary with the data (how
     many records chose a structure) and each size would be a new program; with two sizes a
     structure compiles at most two."""
     out: dict = {}
     for i, t in enumerate(trees):
-        out.setdefault(jax.tree.structure(t), []).append(i)
+        shapes = tuple(np.shape(x) for x in jax.tree.leaves(t))  # padded models: one treedef
+        out.setdefault((jax.tree.structure(t), shapes), []).append(i)
     chunks = []
     for idx in out.values():
         full = len(idx) // BATCH * BATCH

@@ -21,10 +21,10 @@ from ._boundary import check_search
 from ._model import Model
 from ._observers import fit_percent, validation_window
 from ._output_error import OutputErrorFit, free_parameters, output_error, output_error_many, stabilised
+from ._padded import observe_candidate, padded_model
 from ._pytree import replace_fields
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import CHUNK_SETTINGS
-from ._search._validation import observe_candidate, padded_candidate
 from ._selection import OBSERVER_FRACTION, holdout_search, rank_by
 from ._signals import Signals
 from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc, srivc_many
@@ -225,6 +225,9 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
                       [np.asarray(rec.window(*hold).y) for rec in records]))
 
     n_max = max(int(np.max(sel.refit.columns["n"])) for sel in sels)  # one observer program
+    # output error: a batch pads every structure to n_max (no program per structure chosen);
+    # one record keeps its own shape (the padded unknowns would cost forward-mode passes)
+    oe_pad = n_max if R > 1 else None
 
     def hold_scores(pairs):
         """(mean hold-out E over the folds, mean fit %) of each (record, models per fold)."""
@@ -233,7 +236,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
         for f, (_, hold, ob, y_hold) in enumerate(folds):
             start, length, ob = validation_window(records[0], hold, ob, n_max, "estimate")
             obs = map_pairs(_observed, [records[r] for r, _ in pairs],
-                            [padded_candidate(ms[f], n_max) for _, ms in pairs],
+                            [padded_model(ms[f], n_max) for _, ms in pairs],
                             start=np.int32(start), length=length, ob_length=ob)
             for k, ((r, _), o) in enumerate(zip(pairs, obs)):
                 if o is None or int(o.status) & (Status.OVERFLOW | Status.UNOBSERVABLE):
@@ -300,7 +303,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
                                                    for x in sels[r].fitted]
                      for r, b in enumerate(best)]
             oe = [None if v is None else [f.model for f in v]
-                  for v in per_fold(output_error, list(enumerate(bases)))]
+                  for v in per_fold(output_error, list(enumerate(bases)), n_max=oe_pad)]
             live = [r for r in range(R) if oe[r] is not None]
             for r, (E_oe, fit_oe) in zip(live, hold_scores([(r, oe[r]) for r in live])):
                 stage = "srivc + output error" if best[r][3] == "srivc" else "output error"
@@ -347,7 +350,8 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
                            "returned")
         oes = dict(zip(oe_rec, _staged_many(
             output_error, [est_sigs[r] for r in oe_rec],
-            [fits[r].model if fits.get(r) is not None else seeds[r][0] for r in oe_rec])))
+            [fits[r].model if fits.get(r) is not None else seeds[r][0] for r in oe_rec],
+            n_max=oe_pad)))
         for r in [r for r in fell if methods[r] == "srivc + output error"]:
             if oes[r] is None or not oes[r].converged:  # no better: SRIVC's best iterate
                 methods[r] = "srivc"
@@ -512,7 +516,8 @@ def _from_search(records, results, *, polish, max_iter, tol) -> list:
                          "record; try selection='holdout' or a smaller grid")
     with warnings.catch_warnings():  # `estimate` warns itself for a stage that did not converge
         warnings.simplefilter("ignore")
-        oes = _staged_many(output_error, records, [f.model for f in fits]) if polish \
+        oes = _staged_many(output_error, records, [f.model for f in fits], n_max=max(
+            f.model.n for f in fits) if len(fits) > 1 else None) if polish \
             else [None] * len(fits)
     out = []
     for rec, res, start, (_, unstable), fit, oe in zip(records, results, starts, seeds, fits,

@@ -155,7 +155,8 @@ def validation_window(signals: Signals, window, observer_window, n: int, fn: str
     return v0, length, ob
 
 
-def _checked(obs: Observation, fn: str) -> Observation:
+def checked(obs: Observation, fn: str) -> Observation:
+    """`obs`, or a ValueError naming `fn` when its status says overflow or unobservable."""
     if not isinstance(obs.status, jax.core.Tracer):
         st = int(obs.status)
         if st & Status.OVERFLOW:
@@ -197,7 +198,7 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
             )
     obs = _observe(model.unlabelled(), signals.y, signals.u, signals.dt,
                    jnp.asarray(start, dtype=jnp.int32), length, ob)
-    return _checked(obs, "observe")
+    return checked(obs, "observe")
 
 
 _observe = jit(observe_window)

@@ -55,7 +55,8 @@ from ._boundary import require_x64
 from ._jit import jit
 from ._model import Model, plain_number
 from ._observers import observe_forced
-from ._search import padded_forced, plan_search, run_plan, validate_candidate
+from ._padded import padded_forced
+from ._search import plan_search, run_plan, validate_candidate
 from ._signals import INTERSAMPLE, Signals
 from ._status import Status
 

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _padded as padded
 from ._jit import device, jit
 from ._linalg import expm
 from ._model import Model
@@ -103,28 +104,40 @@ def with_parameters(model: Model, theta):
 
 
 class _Residual(eqx.Module):
-    """y - y_sim(theta0 + scale z_theta, x_init + x_scale z_x) on the window (a pytree)."""
+    """y - y_sim(theta0 + scale z_theta, x_init + x_scale z_x) on the window (a pytree), the
+    model zero-padded (`mfmjax._padded`): every structure of one padded order is one program.
+    z holds the padded theta and the padded initial state; the entries outside `free` are held
+    at zero here, so their Jacobian columns vanish and `_lm` never moves them."""
 
-    model: Model
-    u: jax.Array
+    c: dict  # the padded start; its coefficients are replaced by theta
+    signals: Signals  # unlabelled
     y: jax.Array
     theta0: jax.Array
     scale: jax.Array
     x_init: jax.Array
     x_scale: jax.Array
+    free: jax.Array  # (size,) the free entries of z
     start: jax.Array  # first sample of the window (a value: a new window is not a new program)
-    dt: float = eqx.field(static=True)
     length: int = eqx.field(static=True)
 
     @property
     def size(self) -> int:
-        """Unknowns z: the free parameters and the initial state."""
+        """Unknowns z: the padded parameters and initial state."""
         return self.theta0.shape[-1] + self.x_init.shape[-1]
 
     def __call__(self, z, args):
         p = self.theta0.shape[0]
-        sim = simulated_output(self.model, self.u, self.dt, self.start, self.length)
-        return self.y - sim(self.theta0 + self.scale * z[:p], self.x_init + self.x_scale * z[p:])
+        z = jnp.where(self.free, z, 0.0)  # padded coefficients are slots of the realisation
+        c = padded.with_theta(self.c, self.theta0 + self.scale * z[:p], self.signals.offset)
+        (ss, drive, direct), _ = padded.padded_forced(self.signals, c,
+                                                      self.start + jnp.arange(self.length))
+        Phi = expm(ss.A * self.signals.dt)
+
+        def step(x, d):
+            return Phi @ x + d, ss.C[0] @ x
+
+        _, ys = jax.lax.scan(step, self.x_init + self.x_scale * z[p:], drive)
+        return self.y - (ys + direct)
 
 
 @jit
@@ -190,33 +203,49 @@ def _lm_arguments(size: int, max_steps, rtol, atol):
                            np.asarray(atol, np.float64)))
 
 
-def _prepare(signals: Signals, model: Model, window):
+def _prepare(signals: Signals, model: Model, window, n_max: int | None = None):
     """The scaled residual of `output_error` at its start (the initial state from the
-    observer, eq. 14) and what `_finish` needs. Raises ValueError when the start's simulation
-    overflows or its state is unobservable on the window."""
-    from ._observers import observe
+    observer, eq. 14) and what `_finish` needs. The model is zero-padded to order `n_max` with
+    numerators of order n_max (every structure of that order: one program), or by default to
+    its own n and largest m_k (no padded unknowns in the forward-mode Jacobian, whose cost
+    grows with their count). Raises ValueError when the start's simulation overflows or its
+    state is unobservable on the window."""
+    from ._observers import checked, validation_window
 
+    if model.n_inputs != signals.n_inputs:
+        raise ValueError(f"output_error(): the model has {model.n_inputs} inputs but the signals "
+                         f"have {signals.n_inputs}; pass the inputs the model was identified with")
     original = model
     model, was_unstable = stabilised(model)
-    obs = observe(model, signals, window)
-    k0 = 0 if window is None else round((float(window[0]) - signals.t0) / signals.dt)
-    length = int(obs.y_sim.shape[0])
+    k0, length = validation_window(signals, window, None, model.n, "output_error", "window")[:2]
+    n_max, m_max = (model.n, max(model.m, default=0)) if n_max is None else (n_max, n_max)
+    c = padded.padded_model(model, n_max, m_max)
+    # the zero-padded observer: one program for every structure of this padded shape
+    obs = checked(padded.observe_candidate(signals.unlabelled(), c, np.int32(k0), length, None),
+                  "output_error")
     yv = np.asarray(signals.y)[k0 : k0 + length]  # host glue in NumPy: no eager programs
     names, theta0 = free_parameters(model)
+    idx = padded.indices(model, n_max, m_max + 1)
+    p = n_max + model.n_inputs * (m_max + 1) + int(model.has_offset)
     scale = np.maximum(np.abs(theta0), 1e-8 * max(np.max(np.abs(theta0)), 1e-300))
-    x_scale = np.maximum(np.abs(np.asarray(obs.x_initial)), 1e-6 * float(np.std(yv)) + 1e-300)
-    yv, theta0_d, scale_d, x_scale_d, k0_d = jax.device_put((yv, theta0, scale, x_scale,
-                                                             np.int32(k0)))
-    residual = _Residual(model.unlabelled(), signals.u, yv, theta0_d, scale_d, obs.x_initial,
-                         x_scale_d, k0_d, signals.dt, length)
-    return residual, (original, model, was_unstable, names, theta0, scale, x_scale, obs.x_initial)
+    x_init = np.asarray(obs.x_initial)  # zero beyond n
+    x_scale = np.maximum(np.abs(x_init[: model.n]), 1e-6 * float(np.std(yv)) + 1e-300)
+    free = np.zeros(p + n_max, bool)
+    free[idx], free[p : p + model.n] = True, True
+    th0, sc, xs = np.zeros(p), np.ones(p), np.ones(n_max)
+    th0[idx], sc[idx], xs[: model.n] = theta0, scale, x_scale
+    residual = _Residual(*jax.device_put((c, signals.unlabelled(), yv, th0, sc, x_init, xs,
+                                          free, np.int32(k0))), length)
+    return residual, (original, model, was_unstable, names, theta0, scale, x_scale,
+                      x_init[: model.n], idx)
 
 
 def _finish(residual, meta, z, result, n_steps) -> OutputErrorFit:
     """`OutputErrorFit` from the solver's point: kept if usable and no worse than the start,
     the Gauss-Newton covariance there; warns when not converged."""
-    original, model, was_unstable, names, theta0, scale, x_scale, x_init = meta
-    p_theta, length, dt = theta0.size, residual.length, residual.dt
+    original, model, was_unstable, names, theta0, scale, x_scale, x_init, idx = meta
+    p_theta, length, dt = theta0.size, residual.length, residual.signals.dt
+    live = np.concatenate([idx, residual.theta0.shape[0] + np.arange(model.n)])
     z0 = device(np.zeros(z.shape))
     code = LM_CODES[int(result)]
     r0, r = _residual_at(residual, z0), _residual_at(residual, z)
@@ -226,11 +255,11 @@ def _finish(residual, meta, z, result, n_steps) -> OutputErrorFit:
     ok = code in USABLE and math.isfinite(E1) and E1 <= E0
     if not ok:
         z, E1 = z0, E0
-    z_host = np.asarray(z)
+    z_host = np.asarray(z)[live]  # the structure's parameters and states
     theta = np.asarray(theta0 + scale * z_host[:p_theta])
     x0 = device(np.asarray(x_init) + x_scale * z_host[p_theta:])
     Jz = _jacobian(residual, z)  # d r / d z; parameters = theta0 + scale * z
-    Jp = np.asarray(Jz) / np.concatenate([scale, x_scale])[None, :]
+    Jp = np.asarray(Jz)[:, live] / np.concatenate([scale, x_scale])[None, :]
     dof = max(length - Jp.shape[1], 1)
     sigma2 = float(np.sum(np.asarray(r) ** 2)) / dof if ok else float(np.sum(
         np.asarray(r0) ** 2)) / dof
@@ -246,18 +275,19 @@ def _finish(residual, meta, z, result, n_steps) -> OutputErrorFit:
                           bool(converged), bool(was_unstable))
 
 
-def output_error_many(records, models, *, max_steps: int = 100, rtol: float = 1e-10,
-                      atol: float = 1e-12) -> list:
+def output_error_many(records, models, *, n_max: int | None = None, max_steps: int = 100,
+                      rtol: float = 1e-10, atol: float = 1e-12) -> list:
     """`output_error(records[i], models[i])` for every pair (whole records), the
-    Levenberg-Marquardt iterations of each chunk of pairs of one model structure in one
-    compiled call (`lax.map`, chunks as in `_batch.groups`).
+    Levenberg-Marquardt iterations of each chunk of pairs of one padded shape in one compiled
+    call (`lax.map`, chunks as in `_batch.groups`); with `n_max` every structure of order
+    <= n_max has that shape (`_prepare`).
     An entry is None where the start could not be simulated (overflow, unobservable)."""
     from ._batch import groups, stack, unstack
 
     prepared = []
     for sig, model in zip(records, models):
         try:
-            prepared.append(_prepare(sig, model, None))
+            prepared.append(_prepare(sig, model, None, n_max))
         except ValueError:
             prepared.append(None)
     out = [None] * len(prepared)
@@ -298,7 +328,8 @@ def _lm(residual, z0, max_steps, rtol, atol):
 
     r0, J0 = rj(z0)
     c0 = 0.5 * jnp.sum(r0**2)
-    D0 = jnp.sum(J0**2, axis=0)
+    fixed = jnp.where(residual.free, 0.0, 1.0)
+    D0 = jnp.where(residual.free, jnp.sum(J0**2, axis=0), 0.0)
 
     def cond(s):
         return (s["step"] < max_steps) & ~s["done"]
@@ -307,7 +338,7 @@ def _lm(residual, z0, max_steps, rtol, atol):
         z, r, J, cost, lam, nu = s["z"], s["r"], s["J"], s["cost"], s["lam"], s["nu"]
         D = jnp.maximum(s["D"], jnp.sum(J**2, axis=0))  # Marquardt scaling (Moré: running max)
         g = J.T @ r
-        A = J.T @ J + lam * jnp.diag(D)
+        A = J.T @ J + lam * jnp.diag(D) + jnp.diag(fixed)  # padding: a unit block, delta 0
         delta = -jnp.linalg.solve(A, g)
         z_new = z + delta
         r_new, J_new = rj(z_new)
@@ -326,7 +357,8 @@ def _lm(residual, z0, max_steps, rtol, atol):
             done=jnp.isfinite(cost_new) & small_z & small_f)
 
     start = dict(z=z0, r=r0, J=J0, cost=c0, lam=jnp.asarray(1e-3), nu=jnp.asarray(2.0),
-                 D=jnp.maximum(D0, 1e-12 * jnp.max(D0)), step=jnp.asarray(0),
+                 D=jnp.where(residual.free, jnp.maximum(D0, 1e-12 * jnp.max(D0)), 0.0),
+                 step=jnp.asarray(0),
                  done=jnp.asarray(False))
     finite = jnp.isfinite(c0) & jnp.all(jnp.isfinite(J0))
     s = jax.lax.while_loop(lambda s: cond(s) & finite, body, start)

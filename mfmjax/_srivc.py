@@ -51,6 +51,7 @@ import numpy as np
 from jax.custom_batching import custom_vmap
 
 from . import _boundary as _b
+from . import _padded as padded
 from ._batch import map_pairs
 from ._jit import array_jit
 from ._linalg import expm, hurwitz, solve
@@ -117,42 +118,6 @@ def _names(n, m, has_offset):
     return tuple(names + (["offset"] if has_offset else []))
 
 
-def padded_start(model: Model, n_max: int) -> dict:
-    r"""The start `model` (order n <= `n_max`) zero-padded to `n_max`: a (n_max+1,), b (K,
-    n_max+1), offset, delays and the orders n and m (K,) as values, so that every structure of
-    one padded order shares one SRIVC program. The padded $\theta$ is
-    [a_0..a_{n_max-1}; b_10..b_1n_max; ..; b_K0..b_Kn_max; offset], its free entries those of
-    `_free`. NumPy for a concrete model, JAX for a traced one (a user's `jax.vmap`)."""
-    K, n = model.n_inputs, model.n
-    traced = any(_b.is_traced(x) for x in (model.a, *model.b, model.offset, model.delays))
-    xp = jnp if traced else np
-    pad = lambda x, to: xp.concatenate([xp.asarray(x, dtype=np.float64),  # noqa: E731
-                                        xp.zeros(to - x.shape[0])])
-    b = xp.stack([pad(bk, n_max + 1) for bk in model.b]) if K else xp.zeros((0, n_max + 1))
-    return {"a": pad(model.a, n_max + 1), "b": b,
-            "offset": xp.asarray(model.offset, dtype=np.float64),
-            "delays": xp.reshape(xp.asarray(model.delays, dtype=np.float64), (K,)),
-            "n": np.int32(n), "m": np.asarray(model.m, dtype=np.int32).reshape(K)}
-
-
-def _free(c, has_offset):
-    """Mask of the padded theta's free entries: a_i (i < n), b_kj (j <= m_k), the offset."""
-    n_max = c["a"].shape[0] - 1
-    j = jnp.arange(n_max + 1)
-    return jnp.concatenate([jnp.arange(n_max) < c["n"],
-                            (j[None, :] <= c["m"][:, None]).reshape(-1)]
-                           + ([jnp.ones(1, bool)] if has_offset else []))
-
-
-def _unpad(x, n, m, n_max, has_offset):
-    """The entries of padded theta-shaped `x` (..., p_pad) that belong to structure (n, m)."""
-    idx = list(range(n)) + [n_max + k * (n_max + 1) + j for k, mk in enumerate(m)
-                            for j in range(mk + 1)]
-    if has_offset:
-        idx.append(n_max + len(m) * (n_max + 1))
-    return x[..., np.asarray(idx)]
-
-
 def _mm(Phi, z):
     """Phi (n, n) @ z (n, S) written elementwise (fuses inside the scan; see module)."""
     return sum(Phi[:, j, None] * z[j][None, :] for j in range(Phi.shape[0]))
@@ -217,20 +182,12 @@ def _apply(X, d, PQR, a, n, taus, dt, modes, Phi):
     return jnp.where(j < n, z, jnp.where(j == n, top[:, None, :], 0.0))
 
 
-def _split(theta, n, K, has_offset):
-    """Padded theta -> a (n_max+1,) with a_n = 1, b (K, n_max+1), offset."""
-    N = (theta.shape[0] - int(has_offset) - K) // (K + 1)
-    a = jnp.concatenate([theta[:N], jnp.zeros(1)]).at[n].set(1.0)
-    b = theta[N : N + K * (N + 1)].reshape(K, N + 1)
-    return a, b, (theta[-1] if has_offset else jnp.zeros(()))
-
-
-def _step(theta, free, n, y, u, delays, *, modes, has_offset, dt):
+def _step(theta, c, free, y, u, *, modes, has_offset, dt):
     """One SRIVC pass at padded theta: (simulation error sum, next theta, Phi_hat^T Phi_hat);
     the entries outside `free` are zero columns with a unit diagonal in the IV system, so they
     stay zero and the free ones are those of the unpadded system."""
-    T, K = y.shape[0], u.shape[1]
-    a, b, off = _split(theta, n, K, has_offset)
+    T, K, n, delays = y.shape[0], u.shape[1], c["n"], c["delays"]
+    a, b, off = padded.split(theta, c, has_offset)
     N = a.shape[0] - 1
     Ac = _companion(a, n)
     # y first (foh, no delay; module docstring), then the inputs, then the constant
@@ -239,50 +196,49 @@ def _step(theta, free, n, y, u, delays, *, modes, has_offset, dt):
     taus = jnp.concatenate([jnp.zeros(1), delays] + ([jnp.zeros(1)] if has_offset else []))
     Phi_d, d, PQR = _terms(Ac, n, cmodes, taus, dt)
     F = _apply(jnp.stack(X, 1), d, PQR, a, n, taus, dt, cmodes, Phi_d)  # (T, n_max+1, S)
-    uf = [F[:, :, 1 + k] for k in range(K)]
+    uf = [F[:, : b.shape[1], 1 + k] for k in range(K)]
     of = [F[:, :1, -1]] if has_offset else []
     xhat = sum(uf[k] @ b[k] for k in range(K)) + (of[0][:, 0] * off if has_offset else 0.0)
     xf = _apply(xhat[:, None], d[:1], PQR[:1], a, n, taus[:1], dt, ("foh",), Phi_d)[:, :, 0]
     Phi = jnp.where(free, jnp.concatenate([-F[:, :N, 0]] + uf + of, axis=1), 0.0)
     Phih = jnp.where(free, jnp.concatenate([-xf[:, :N]] + uf + of, axis=1), 0.0)
     target = jnp.take(F[:, :, 0], n, axis=1)
-    c = jnp.sqrt(jnp.sum(Phi**2, axis=0))
+    cs = jnp.sqrt(jnp.sum(Phi**2, axis=0))
     ch = jnp.sqrt(jnp.sum(Phih**2, axis=0))
-    c, ch = jnp.where(c > 0, c, 1.0), jnp.where(ch > 0, ch, 1.0)
-    R = (Phih / ch).T @ (Phi / c) + jnp.diag(jnp.where(free, 0.0, 1.0))
-    new = solve(R, (Phih / ch).T @ target) / c
+    cs, ch = jnp.where(cs > 0, cs, 1.0), jnp.where(ch > 0, ch, 1.0)
+    R = (Phih / ch).T @ (Phi / cs) + jnp.diag(jnp.where(free, 0.0, 1.0))
+    new = solve(R, (Phih / ch).T @ target) / cs
     E = jnp.sum((y - xhat) ** 2)
     return E, new, Phih.T @ Phih
 
 
-def _core(theta0, free, n, y, u, delays, max_iter, tol, *, modes, has_offset, dt):
+def _core(c, y, u, max_iter, tol, *, modes, has_offset, dt):
     """The jitted iteration (see `srivc`); one traced SRIVC pass inside a while loop.
 
     E, sigma2 and the covariance belong to the last evaluated iterate: the returned one, or,
     when converged, the one before it (within `tol`)."""
     step = jax.tree_util.Partial(_step, modes=modes, has_offset=has_offset, dt=dt)
-    N = (theta0.shape[0] - int(has_offset) - u.shape[1]) // (u.shape[1] + 1)
+    N, n = c["a"].shape[0] - 1, c["n"]
+    free, theta0 = padded.free(c, has_offset), padded.theta(c, has_offset)
     guess = jnp.asarray(_STABLE_GUESS[N])[n]
     floor = ROUNDING_FLOOR * jnp.sum(y**2)  # noise-free fits: E at rounding level
 
-    def cond(c):
-        return ~c["done"] & (c["it"] < max_iter)
+    def cond(s):
+        return ~s["done"] & (s["it"] < max_iter)
 
-    def body(c):
-        theta = c["theta"]
-        a = _split(theta, n, u.shape[1], has_offset)[0]
-        stable = hurwitz(a) & jnp.all(jnp.isfinite(theta))
+    def body(s):
+        theta = s["theta"]
+        stable = hurwitz(padded.split(theta, c, has_offset)[0]) & jnp.all(jnp.isfinite(theta))
         # an unstable A is never filtered (it would overflow): a stable stand-in, discarded
-        E, new, G = step(jnp.where(stable, theta, theta.at[:N].set(guess)), free, n, y, u,
-                         delays)
+        E, new, G = step(jnp.where(stable, theta, theta.at[:N].set(guess)), c, free, y, u)
         E = jnp.where(stable, E, jnp.inf)
-        better = stable & (E < c["E_best"])
+        better = stable & (E < s["E_best"])
         pick = lambda now, old: jnp.where(better, now, old)  # noqa: E731
-        best, E_best, G_best = pick(theta, c["best"]), pick(E, c["E_best"]), pick(G, c["G"])
+        best, E_best, G_best = pick(theta, s["best"]), pick(E, s["E_best"]), pick(G, s["G"])
         scale = jnp.maximum(jnp.abs(new), 1e-12 * jnp.max(jnp.abs(new)))
         change = jnp.max(jnp.where(free, jnp.abs(new - theta) / scale, 0.0))
         finite = jnp.all(jnp.isfinite(new)) & ~jnp.isnan(E)
-        status = c["status"]
+        status = s["status"]
         status = status | jnp.where(~stable, int(SrivcStatus.UNSTABLE_FILTER), 0)
         status = status | jnp.where(stable & ~finite, int(SrivcStatus.NONFINITE), 0)
         diverged = stable & finite & (E > DIVERGENCE_FACTOR * jnp.maximum(E_best, floor))
@@ -290,21 +246,21 @@ def _core(theta0, free, n, y, u, delays, max_iter, tol, *, modes, has_offset, dt
         failed = status != 0
         conv = ~failed & (change < tol)
         return dict(theta=jnp.where(failed, theta, new), best=best, E_best=E_best,
-                    G=G_best, E_last=E, G_last=G, it=c["it"] + 1, status=status,
+                    G=G_best, E_last=E, G_last=G, it=s["it"] + 1, status=status,
                     done=failed | conv, conv=conv)
 
     T, p = y.shape[0], theta0.shape[0]
     init = dict(theta=theta0, best=theta0, E_best=jnp.asarray(jnp.inf), G=jnp.zeros((p, p)),
                 E_last=jnp.asarray(jnp.inf), G_last=jnp.zeros((p, p)), it=jnp.asarray(0),
                 status=jnp.asarray(0), done=jnp.asarray(False), conv=jnp.asarray(False))
-    c = jax.lax.while_loop(cond, body, init)
-    status = c["status"] | jnp.where(~c["done"], int(SrivcStatus.MAX_ITER), 0)
+    s = jax.lax.while_loop(cond, body, init)
+    status = s["status"] | jnp.where(~s["done"], int(SrivcStatus.MAX_ITER), 0)
     status = status | jnp.where(jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(u)), 0,
                                 int(SrivcStatus.NONFINITE))
-    conv = c["conv"] & (status == 0)
-    theta = jnp.where(conv, c["theta"], c["best"])
-    E = jnp.where(conv, c["E_last"], c["E_best"])
-    G = jnp.where(conv, c["G_last"], c["G"])  # Phi_hat^T Phi_hat (zero outside `free`)
+    conv = s["conv"] & (status == 0)
+    theta = jnp.where(conv, s["theta"], s["best"])
+    E = jnp.where(conv, s["E_last"], s["E_best"])
+    G = jnp.where(conv, s["G_last"], s["G"])  # Phi_hat^T Phi_hat (zero outside `free`)
     sigma2 = E / jnp.maximum(T - jnp.sum(free), 1)
     ch = jnp.sqrt(jnp.diagonal(G))
     ch = jnp.where(ch > 0, ch, 1.0)
@@ -312,7 +268,7 @@ def _core(theta0, free, n, y, u, delays, max_iter, tol, *, modes, has_offset, dt
     inv = jax.vmap(lambda e: solve(Rn, e))(jnp.eye(p)) / ch[:, None] / ch[None, :]
     cov = jnp.where(jnp.isfinite(E) & free[:, None] & free[None, :],
                     sigma2 * 0.5 * (inv + inv.T), jnp.where(jnp.isfinite(E), 0.0, jnp.nan))
-    return theta, E * dt, sigma2, cov, c["it"], status
+    return theta, E * dt, sigma2, cov, s["it"], status
 
 
 def _stable_guesses(n_max):
@@ -328,17 +284,11 @@ _STABLE_GUESS = {n_max: _stable_guesses(n_max) for n_max in range(1, 21)}
 
 
 def _run(c, y, u, max_iter, tol, dt, modes, has_offset):
-    """Start vector from the padded start `c`, the iteration, and the padded outputs of
-    `srivc` (one program per padded order, inputs, rules and record length)."""
-    n, K = c["n"], u.shape[1]
-    free = _free(c, has_offset)
-    an = c["a"][n]
-    theta0 = jnp.concatenate([c["a"][:-1] / an, (c["b"] / an).reshape(-1)]
-                             + ([jnp.reshape(c["offset"] / an, (1,))] if has_offset else []))
-    theta0 = jnp.where(free, theta0, 0.0)
-    theta, E, sigma2, cov, it, status = _core(theta0, free, n, y, u, c["delays"], max_iter, tol,
-                                              modes=modes, has_offset=has_offset, dt=dt)
-    a = _split(theta, n, K, has_offset)[0]
+    """The iteration from the padded start `c` and the padded outputs of `srivc` (one program
+    per padded shape, inputs, rules and record length)."""
+    theta, E, sigma2, cov, it, status = _core(c, y, u, max_iter, tol, modes=modes,
+                                              has_offset=has_offset, dt=dt)
+    a = padded.split(theta, c, has_offset)[0]
     model_status = jnp.where(hurwitz(a), 0, int(Status.UNSTABLE)).astype(jnp.int32)
     return dict(theta=theta, model_status=model_status, std=jnp.sqrt(jnp.diagonal(cov)),
                 cov=cov, sigma2=sigma2, E=E, it=it, status=status)
@@ -370,23 +320,24 @@ def _program(modes, has_offset):
 
 
 def padded_fit(signals: Signals, c: dict, *, max_iter: int, tol: float) -> dict:
-    """The padded outputs of SRIVC from the padded start `c` (`padded_start`) on `signals`
+    """The padded outputs of SRIVC from the padded start `c` (`padded_model`) on `signals`
     (checked by the caller): one program for every structure of `c`'s padded order."""
     return _program(tuple(signals.intersample), signals.offset)(
         c, signals.y, signals.u, max_iter, tol, signals.dt)
 
 
-def _fit(signals: Signals, model: Model, out: dict) -> SrivcFit:
+def _fit(signals: Signals, model: Model, out: dict, shape: tuple[int, int]) -> SrivcFit:
     """`SrivcFit` of structure `model.structure` from the padded outputs of `padded_fit`
-    (sliced on the host and put back in one transfer when concrete: no program per shape)."""
+    (padded shape (n_max, w); sliced on the host and put back in one transfer when concrete:
+    no program per shape)."""
     n, m, off = model.n, tuple(model.m), model.has_offset
     traced = _b.is_traced(out["theta"])
     xp = jnp if traced else np
     if not traced:
         out = jax.device_get(out)
-    n_max = (out["theta"].shape[-1] - int(off) - len(m)) // (len(m) + 1)
-    theta = _unpad(out["theta"], n, m, n_max, off)
-    cov = _unpad(_unpad(out["cov"], n, m, n_max, off).T, n, m, n_max, off).T
+    idx = padded.indices(model, *shape)
+    theta = out["theta"][..., idx]
+    cov = out["cov"][..., idx[:, None], idx[None, :]]
     pos, bs = n, []
     for mk in m:
         bs.append(theta[pos : pos + mk + 1])
@@ -398,7 +349,7 @@ def _fit(signals: Signals, model: Model, out: dict) -> SrivcFit:
                 structure=model.structure, intersample=tuple(signals.intersample),
                 has_offset=off, output_name=signals.output_name,
                 input_names=tuple(signals.input_names))
-    fit = SrivcFit(new, model, theta, _unpad(out["std"], n, m, n_max, off), cov,
+    fit = SrivcFit(new, model, theta, out["std"][..., idx], cov,
                    out["sigma2"], out["E"], out["it"], out["status"] == 0, out["status"],
                    _names(n, m, off))
     return fit if traced else jax.device_put(fit)
@@ -414,7 +365,7 @@ def srivc(signals: Signals, model: Model, *, max_iter: int = 30, tol: float = 1e
     non-finite: then the best iterate by simulation error is returned (the start when there is
     none) with the reason in `status`, and a warning in eager mode. One jitted program per
     order n, inputs, rules and record length (the numerator orders m_k are values:
-    `padded_start`): new data, starts, dt, `max_iter` and `tol` are values too.
+    `padded_model`): new data, starts, dt, `max_iter` and `tol` are values too.
     Works under `jax.jit` and `jax.vmap` (over stacked `Signals` and `Model`s of equal shape).
 
     **Arguments:** `signals` (y (T,), u (T, K)), `model` (the start), `max_iter`, `tol`.
@@ -424,8 +375,9 @@ def srivc(signals: Signals, model: Model, *, max_iter: int = 30, tol: float = 1e
     """
     max_iter, tol = _checked(signals, model, max_iter, tol)
     traced = _b.is_traced(signals.y) or _b.is_traced(model.a) or _b.is_traced(max_iter)
-    fit = _fit(signals, model, padded_fit(signals, padded_start(model, model.n),
-                                          max_iter=max_iter, tol=tol))
+    c = padded.padded_model(model, model.n)  # m_k <= n: every numerator order, one program
+    fit = _fit(signals, model, padded_fit(signals, c, max_iter=max_iter, tol=tol),
+               (model.n, model.n + 1))
     if not traced and int(fit.status) != 0:
         warnings.warn(f"srivc(): stopped without converging ({describe_srivc(int(fit.status))})"
                       f" after {int(fit.iterations)} iterations; returned the best iterate by "
@@ -467,7 +419,7 @@ def _checked(signals: Signals, model: Model, max_iter, tol):
 
 def srivc_many(records, models, *, n_max: int, max_iter: int = 30, tol: float = 1e-8) -> list:
     """`srivc(records[i], models[i])` for every pair (`Signals` of one layout, starts of order
-    <= `n_max`): all structures zero-padded to `n_max` (`padded_start`), so every chunk of pairs
+    <= `n_max`): all structures zero-padded to `n_max` (`padded_model`), so every chunk of pairs
     runs in one compiled call whatever its structures (`map_pairs`). No warnings: the caller
     reads `status`. An entry is None where `srivc` would raise ValueError."""
     starts, live = [], []
@@ -476,10 +428,10 @@ def srivc_many(records, models, *, n_max: int, max_iter: int = 30, tol: float = 
             _checked(signals, model, max_iter, tol)
         except ValueError:
             continue
-        starts.append(padded_start(model, n_max))
+        starts.append(padded.padded_model(model, n_max))
         live.append(i)
     outs = map_pairs(padded_fit, [records[i] for i in live], starts, max_iter=max_iter, tol=tol)
     fits = [None] * len(models)
     for i, out in zip(live, outs):
-        fits[i] = None if out is None else _fit(records[i], models[i], out)
+        fits[i] = None if out is None else _fit(records[i], models[i], out, (n_max, n_max + 1))
     return fits

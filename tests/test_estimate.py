@@ -76,14 +76,14 @@ def test_cli_search_estimate(noisy, tmp_path, capsys):
     assert main(args + ["--refine"]) == 2  # one way to improve the winner at a time
 
 
-def _realisations(snr_db, seeds):
-    clean = simulated_experiment(TRUE, dt=DT, n_samples=T, seed=7)
+def _realisations(snr_db, seeds, true=TRUE):
+    clean = simulated_experiment(true, dt=DT, n_samples=T, seed=7)
     sd = float(np.std(np.asarray(clean.y))) / 10 ** (snr_db / 20)
-    return [simulated_experiment(TRUE, dt=DT, n_samples=T, seed=s, noise_std=sd) for s in seeds]
+    return [simulated_experiment(true, dt=DT, n_samples=T, seed=s, noise_std=sd) for s in seeds]
 
 
 # two structures (n = 1, 2; m = 0), both through SRIVC for every record; at 20 dB every
-# realisation chooses n = 2 (checked below): programs are compiled per structure
+# realisation chooses n = 2 (checked below)
 SMALL = dict(h=2.0, n=(1, 2), N=3, M=3, m=[[0]])
 
 
@@ -129,6 +129,23 @@ def test_estimate_batch_compiles_nothing_for_new_realisations(batch_20db):
     assert {(e.model.n, e.model.m, e.method) for e in again} == chosen
     assert names == [], names
     assert all(e.converged for e in again)
+
+
+def test_estimate_batch_compiles_nothing_for_other_structures(batch_20db):
+    """No program is compiled per model structure: a batch of another system (first order,
+    the same record layout) chooses n = 1 where the first batch chose n = 2, and compiles
+    nothing (SRIVC, the hold-out observer and output error take every structure zero-padded
+    to the grid's largest order)."""
+    from jaxlog import compiles
+
+    _, ests, _ = batch_20db
+    first_order = Model.from_coefficients([1.0, 1.0], [[1.0]], intersample=["zoh"])
+    records = _realisations(20.0, range(80, 89), first_order)  # (simulating it compiles)
+    with compiles() as names:
+        other = mfmjax.estimate(records, **SMALL)
+    assert {e.model.n for e in other} == {1} and {e.model.n for e in ests} == {2}
+    assert {e.method for e in other} == {e.method for e in ests}  # the same stages ran
+    assert names == [], names
 
 
 def test_estimate_batch_refuses_mixed_layouts(noisy):

@@ -235,7 +235,7 @@ def test_padded_candidate_observer_equals_observe_for_every_order():
     from jaxlog import compiles
 
     from mfmjax._observers import validation_window
-    from mfmjax._search._validation import observe_candidate, padded_candidate
+    from mfmjax._padded import observe_candidate, padded_model
 
     sig, _ = _data()
     sig = Signals(sig.y + 0.3, sig.u, dt=sig.dt, intersample=("foh", "zoh"), offset=True,
@@ -249,7 +249,7 @@ def test_padded_candidate_observer_equals_observe_for_every_order():
     with compiles() as names:
         for model in models:
             ref = mfmjax.observe(model, sig, window, observer_window=10.0)
-            got = observe_candidate(sig.unlabelled(), padded_candidate(model, 4),
+            got = observe_candidate(sig.unlabelled(), padded_model(model, 4),
                                     jnp.int32(start), length, ob)
             n = model.n
             assert int(got.status) == int(ref.status) == 0

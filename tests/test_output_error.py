@@ -88,3 +88,35 @@ def test_levenberg_marquardt_reaches_minpack_minimum(noisy):
     assert ours <= np.sum(ref.fun**2) * (1 + 1e-9)
     # each stops within ~1e-10 (relative, its step test) of the minimum; measured 2.5e-9 apart
     np.testing.assert_allclose(fit.theta, ref.x[:3], rtol=1e-7)
+
+
+def test_structures_of_one_padded_order_share_one_program(noisy):
+    """`output_error_many(..., n_max=3)` (estimate's batch path) pads every structure to order 3
+    with cubic numerators: nine (record, start) pairs of three structures (n = 1 and 2, m = 0
+    and 1; a third order on these second-order data does not converge) run as
+    one chunk of `BATCH` pairs and one single pair, each compiled once, and each result is the
+    direct `output_error` of its pair. Both stop within the solver's tolerance (a step below
+    1e-10 relative in the scaled unknowns) of one minimum, on rounding that differs with the
+    padded solve; 1e-7 (norm-wise, as the batched `estimate` test) bounds that, and is 1e-5
+    of these fits' standard errors."""
+    from jaxlog import compiles
+
+    from mfmjax._batch import BATCH
+    from mfmjax._output_error import output_error_many
+
+    starts = [Model.from_coefficients(a, b, intersample=["zoh"]) for a, b in
+              (([1.5, 1.0], [[0.5]]), ([2.2, 2.8, 1.0], [[0.9]]),
+               ([2.2, 2.8, 1.0], [[0.9, 0.1]]))]
+    recs = [simulated_experiment(TRUE, dt=0.05, n_samples=800, seed=s, noise_std=0.01)
+            for s in (2, 3, 4)]
+    pairs = [(r, m) for r in recs for m in starts]
+    assert len(pairs) == BATCH + 1
+    with compiles() as names:
+        many = output_error_many([r for r, _ in pairs], [m for _, m in pairs], n_max=3)
+    assert names.count("jit(_lm_many)") == 1 and names.count("jit(_lm)") == 1, names
+    for (r, m), got in zip(pairs, many):
+        want = mfmjax.output_error(r, m)
+        assert got.names == want.names and got.converged and want.converged
+        err = np.linalg.norm(got.theta - want.theta) / np.linalg.norm(want.theta)
+        assert err <= 1e-7, (m.n, err)
+        np.testing.assert_allclose(got.std_errors, want.std_errors, rtol=1e-5)

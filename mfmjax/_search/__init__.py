@@ -31,5 +31,4 @@ from ._grid import SCORES as SCORES
 from ._grid import plan_search as plan_search
 from ._result import SearchResult as SearchResult
 from ._search import search as search
-from ._validation import padded_forced as padded_forced
 from ._validation import validate_candidate as validate_candidate
