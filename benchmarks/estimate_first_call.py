@@ -1,0 +1,95 @@
+"""First and warm `estimate` call in fresh processes, with the programs it compiles.
+
+A user's first `estimate` pays every compilation; this measures it without the persistent
+compilation cache (MFMJAX_NO_COMPILE_CACHE=1), each run in a new process, and the median of five
+warm calls on new realisations after it. `--compare DIR` alternates every run with the package
+found in DIR (e.g. a `git worktree` of an earlier commit), so both see the same machine load.
+
+    python benchmarks/estimate_first_call.py [--runs 3] [--compare /tmp/old]
+
+Record: `third_order_two_input`, 1200 samples, dt 0.05, output noise 0.05; grid n in {2, 3},
+N, M in {4, 5}, h in {2.5, 3.1} (16 settings; the structures come from the default m grid).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+CHILD = r"""
+import json, logging, time, warnings
+warnings.simplefilter("ignore")
+import numpy as np
+import jax
+import mfmjax
+from mfmjax.datasets import simulated_experiment, third_order_two_input
+
+names = []
+class H(logging.Handler):
+    def emit(self, r):
+        m = r.getMessage()
+        if m.startswith("Compiling "):
+            names.append(m.split()[1])
+jax.config.update("jax_log_compiles", True)
+logging.getLogger("jax").addHandler(H())
+logging.getLogger("jax").propagate = False
+grid = dict(n=(2, 3), N=(4, 5), M=(4, 5), h=(2.5, 3.1))
+rec = lambda s: simulated_experiment(third_order_two_input(), dt=0.05, n_samples=1200, seed=s,
+                                     noise_std=0.05)
+first_rec = rec(3)
+names.clear()
+t = time.perf_counter()
+est = mfmjax.estimate(first_rec, **grid)
+first = time.perf_counter() - t
+programs = len(names)
+warm = []
+for s in range(10, 15):
+    r = rec(s)
+    t = time.perf_counter()
+    mfmjax.estimate(r, **grid)
+    warm.append(time.perf_counter() - t)
+print(json.dumps(dict(first_s=first, warm_ms=1e3 * float(np.median(warm)), programs=programs,
+                      method=est.method, n=est.model.n, m=list(est.model.m))))
+"""
+
+
+def run(pythonpath: str | None) -> dict:
+    env = dict(os.environ, MFMJAX_NO_COMPILE_CACHE="1")
+    if pythonpath:
+        env["PYTHONPATH"] = pythonpath
+    out = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True, text=True,
+                         check=True, cwd="/tmp")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--compare", help="a directory holding another mfmjax package")
+    ap.add_argument("--json", default=str(Path(__file__).parent / "results" /
+                                          "estimate_first_call.json"))
+    args = ap.parse_args()
+    rows = []
+    for i in range(args.runs):
+        for label, path in [("this", None)] + ([("compare", args.compare)] if args.compare
+                                                else []):
+            r = run(path)
+            r.update(label=label, run=i)
+            rows.append(r)
+            print(f"{label:8s} run {i}: first call {r['first_s']:6.2f} s, "
+                  f"{r['programs']:3d} programs; warm median {r['warm_ms']:6.0f} ms "
+                  f"({r['method']}, n={r['n']}, m={r['m']})", flush=True)
+    for label in sorted({r["label"] for r in rows}):
+        sel = [r for r in rows if r["label"] == label]
+        print(f"{label:8s} first call {min(r['first_s'] for r in sel):.2f}-"
+              f"{max(r['first_s'] for r in sel):.2f} s, warm {min(r['warm_ms'] for r in sel):.0f}-"
+              f"{max(r['warm_ms'] for r in sel):.0f} ms, programs {sel[0]['programs']}")
+    Path(args.json).write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
