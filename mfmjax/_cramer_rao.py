@@ -6,8 +6,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._linalg import expm
 from ._model import Model
-from ._output_error import free_parameters, simulated_output
+from ._output_error import free_parameters, with_parameters
+from ._simulate import forced_response
 
 
 def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | None = None):
@@ -31,3 +33,20 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
     J = np.asarray(J)
     cov = sigma**2 * np.linalg.pinv(J.T @ J)
     return names, np.sqrt(np.diag(cov))[: theta0.size]
+
+
+def simulated_output(model, u, dt, start, length):
+    """y_sim (length,) of `model` from state x0 at sample `start`: (theta, x0) -> output."""
+    def f(theta, x0):
+        m = with_parameters(model, theta)
+        ss, drive, direct = forced_response(m, u, dt)
+        Phi = expm(ss.A * dt)
+        dr = jax.lax.dynamic_slice_in_dim(drive, start, length)
+        di = jax.lax.dynamic_slice_in_dim(direct, start, length)
+
+        def step(x, d):
+            return Phi @ x + d, ss.C[0] @ x
+
+        _, ys = jax.lax.scan(step, x0, dr)
+        return ys + di
+    return f

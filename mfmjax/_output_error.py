@@ -22,7 +22,6 @@ from ._linalg import expm
 from ._model import Model
 from ._optim import USABLE
 from ._signals import Signals
-from ._simulate import forced_response
 
 
 class OutputErrorFit(eqx.Module):
@@ -148,23 +147,6 @@ def _residual_at(fn, z):
 @jit
 def _jacobian(fn, z):
     return jax.jacfwd(fn)(z, None)
-
-
-def simulated_output(model, u, dt, start, length):
-    """y_sim (length,) of `model` from state x0 at sample `start`: (theta, x0) -> output."""
-    def f(theta, x0):
-        m = with_parameters(model, theta)
-        ss, drive, direct = forced_response(m, u, dt)
-        Phi = expm(ss.A * dt)
-        dr = jax.lax.dynamic_slice_in_dim(drive, start, length)
-        di = jax.lax.dynamic_slice_in_dim(direct, start, length)
-
-        def step(x, d):
-            return Phi @ x + d, ss.C[0] @ x
-
-        _, ys = jax.lax.scan(step, x0, dr)
-        return ys + di
-    return f
 
 
 def output_error(
