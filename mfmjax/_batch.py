@@ -1,5 +1,6 @@
 """Records of one layout as a batch (Monte Carlo realisations, repeated experiments): the
-(record, model) pairs of one model structure are stacked and mapped through one compiled
+(record, model) pairs of one pytree structure and shape (a `Model`'s structure, or every
+structure of one padded order: `mfmjax._padded`) are stacked and mapped through one compiled
 program (`lax.map`: each record runs to its own convergence, memory of one record)."""
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ def _mapped(fn, kw, sig, ys, us, models):
 
 def map_pairs(fn, records, models, **kw) -> list:
     """`fn(records[i], models[i], **kw)` for every pair: each chunk of `BATCH` pairs of one
-    model structure in one compiled call, a single pair by `fn` itself (the program a direct
+    pytree structure and shape in one compiled call, a single pair by `fn` itself (the program a direct
     call uses). `records`: `Signals` of one layout; `kw` are static (hashable). The models'
     labels and modulating functions are dropped (`fn` does not use them); other pytrees (e.g.
     the search's padded candidates) pass as they are. An entry is None

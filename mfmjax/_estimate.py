@@ -189,7 +189,8 @@ def _observed(signals: Signals, candidate: dict, **kw):
 
 def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
     """The stages of `estimate` after its hold-out search, every stage over all records and
-    candidates in one compiled call per model structure."""
+    candidates in chunks of one compiled call, every structure zero-padded to the grid's
+    largest order (SRIVC, the observers, and output error for a batch)."""
     R, sel0 = len(records), sels[0]
     if len(sel0.refit) == 0:
         raise ValueError("estimate(): the search grid has no feasible candidate; widen N, M or h")
@@ -436,9 +437,10 @@ def _best_per_structure(res: SearchResult, count: int) -> list[int]:
 
 
 def _staged_many(stage, records, models, **kw) -> list:
-    r"""`stage` (srivc or output_error) from each model with its delays on its record, all
-    pairs of one structure in one compiled call, on data with the means removed where the
-    model has an offset term: the filters and simulations start from rest and the free
+    r"""`stage` (srivc or output_error) from each model with its delays on its record, each
+    chunk of pairs in one compiled call (SRIVC: every structure padded to `n_max`, default the
+    largest order among the models; output error: padded only with `n_max`), on data with the
+    means removed where the model has an offset term: the filters and simulations start from rest and the free
     parameters are scaled by their magnitude, so a level far from zero (97 degC on the heat
     exchanger) would swamp them. The offset maps exactly between the two levels:
     $b_{off}' = b_{off} + \sum_k b_{k0} \bar u_k - a_0 \bar y$. An entry is None where the
