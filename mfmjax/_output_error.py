@@ -139,16 +139,6 @@ class _Residual(eqx.Module):
         return self.y - (ys + direct)
 
 
-@jit
-def _residual_at(fn, z):
-    return fn(z, None)
-
-
-@jit
-def _jacobian(fn, z):
-    return jax.jacfwd(fn)(z, None)
-
-
 def output_error(
     signals: Signals, model: Model, *, window=None, max_steps: int = 100, rtol: float = 1e-10,
     atol: float = 1e-12,
@@ -174,8 +164,8 @@ def output_error(
     if not isinstance(model, Model):
         raise TypeError("output_error(): model must be a Model")
     residual, meta = _prepare(signals, model, window)
-    z, result, n_steps = _lm(residual, *_lm_arguments(residual.size, max_steps, rtol, atol))
-    return _finish(residual, meta, z, result, n_steps)
+    return _finish(residual, meta, _lm(residual, *_lm_arguments(residual.size, max_steps, rtol,
+                                                                atol)))
 
 
 def _lm_arguments(size: int, max_steps, rtol, atol):
@@ -222,29 +212,28 @@ def _prepare(signals: Signals, model: Model, window, n_max: int | None = None):
                       x_init[: model.n], idx)
 
 
-def _finish(residual, meta, z, result, n_steps) -> OutputErrorFit:
-    """`OutputErrorFit` from the solver's point: kept if usable and no worse than the start,
-    the Gauss-Newton covariance there; warns when not converged."""
+def _finish(residual, meta, solved) -> OutputErrorFit:
+    """`OutputErrorFit` from the solver's point (`_lm`'s outputs, with the residual and its
+    Jacobian at the start and at that point): kept if usable and no worse than the start, the
+    Gauss-Newton covariance there; warns when not converged."""
     original, model, was_unstable, names, theta0, scale, x_scale, x_init, idx = meta
+    z, result, n_steps, r0, J0, r, J = jax.device_get(solved)
     p_theta, length, dt = theta0.size, residual.length, residual.signals.dt
     live = np.concatenate([idx, residual.theta0.shape[0] + np.arange(model.n)])
-    z0 = device(np.zeros(z.shape))
     code = LM_CODES[int(result)]
-    r0, r = _residual_at(residual, z0), _residual_at(residual, z)
-    E0 = float(np.sum(np.asarray(r0) ** 2)) * dt
-    E1 = float(np.sum(np.asarray(r) ** 2)) * dt
+    E0 = float(np.sum(r0**2)) * dt
+    E1 = float(np.sum(r**2)) * dt
     # out of steps but better than the start: kept (the code says so); otherwise the start
     ok = code in USABLE and math.isfinite(E1) and E1 <= E0
     if not ok:
-        z, E1 = z0, E0
-    z_host = np.asarray(z)[live]  # the structure's parameters and states
+        z, E1, r, J = np.zeros_like(z), E0, r0, J0
+    z_host = z[live]  # the structure's parameters and states
     theta = np.asarray(theta0 + scale * z_host[:p_theta])
     x0 = device(np.asarray(x_init) + x_scale * z_host[p_theta:])
-    Jz = _jacobian(residual, z)  # d r / d z; parameters = theta0 + scale * z
-    Jp = np.asarray(Jz)[:, live] / np.concatenate([scale, x_scale])[None, :]
+    # J = d r / d z; parameters = theta0 + scale * z
+    Jp = J[:, live] / np.concatenate([scale, x_scale])[None, :]
     dof = max(length - Jp.shape[1], 1)
-    sigma2 = float(np.sum(np.asarray(r) ** 2)) / dof if ok else float(np.sum(
-        np.asarray(r0) ** 2)) / dof
+    sigma2 = float(np.sum(r**2)) / dof
     cov = sigma2 * np.linalg.pinv(Jp.T @ Jp)
     new = with_parameters(model, theta) if ok else model
     converged = ok and code == "successful"
@@ -281,8 +270,8 @@ def output_error_many(records, models, *, n_max: int | None = None, max_steps: i
             solved = [_lm(prepared[idx[0]][0], z0, *limits)]
         else:
             solved = zip(*map(unstack, _lm_many(stack([prepared[i][0] for i in idx]), *limits)))
-        for i, (z, result, steps) in zip(idx, solved):
-            out[i] = _finish(prepared[i][0], prepared[i][1], z, result, steps)
+        for i, one in zip(idx, solved):
+            out[i] = _finish(prepared[i][0], prepared[i][1], one)
     return out
 
 
@@ -303,7 +292,8 @@ def _lm(residual, z0, max_steps, rtol, atol):
     the scan several times a step: 10x slower here). Stops when a trial step moves z and the
     cost by less than `atol + rtol |.|` (max norm, as optimistix's Cauchy test; at the minimum
     the last trial is rejected by rounding, and z stays at the better point). Returns
-    (z, code index into `LM_CODES`, steps)."""
+    (z, code index into `LM_CODES`, steps, r and J at z0, r and J at z): `_finish` needs no
+    program of its own."""
     def rj(z):
         J, r = jax.jacfwd(lambda v: (residual(v, None),) * 2, has_aux=True)(z)
         return r, J
@@ -345,4 +335,4 @@ def _lm(residual, z0, max_steps, rtol, atol):
     finite = jnp.isfinite(c0) & jnp.all(jnp.isfinite(J0))
     s = jax.lax.while_loop(lambda s: cond(s) & finite, body, start)
     code = jnp.where(~finite, 2, jnp.where(s["done"], 0, 1))
-    return s["z"], code, s["step"]
+    return s["z"], code, s["step"], r0, J0, s["r"], s["J"]

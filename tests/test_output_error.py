@@ -120,3 +120,18 @@ def test_structures_of_one_padded_order_share_one_program(noisy):
         err = np.linalg.norm(got.theta - want.theta) / np.linalg.norm(want.theta)
         assert err <= 1e-7, (m.n, err)
         np.testing.assert_allclose(got.std_errors, want.std_errors, rtol=1e-5)
+
+
+def test_first_call_compiles_the_observer_and_the_solver_only():
+    """A first `output_error` (a record length no other test uses) compiles two programs: the
+    padded start observer and the Levenberg-Marquardt loop, which returns the residual and
+    Jacobian at the start and at its point, so the covariance needs no program of its own
+    (before: four, with a residual and a Jacobian program)."""
+    from jaxlog import compiles
+
+    sig = simulated_experiment(TRUE, dt=0.05, n_samples=731, seed=5, noise_std=0.01)
+    start = Model.from_coefficients([2.2, 2.8, 1.0], [[0.9]], intersample=["zoh"])
+    with compiles() as names:
+        fit = mfmjax.output_error(sig, start)
+    assert sorted(names) == ["jit(_lm)", "jit(observe_candidate)"], names
+    assert fit.converged and np.all(np.isfinite(fit.std_errors)) and fit.E < fit.E_start
