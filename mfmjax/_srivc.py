@@ -220,7 +220,7 @@ def _core(c, y, u, max_iter, tol, *, modes, has_offset, dt):
     step = jax.tree_util.Partial(_step, modes=modes, has_offset=has_offset, dt=dt)
     N, n = c["a"].shape[0] - 1, c["n"]
     free, theta0 = padded.free(c, has_offset), padded.theta(c, has_offset)
-    guess = jnp.asarray(_STABLE_GUESS[N])[n]
+    guess = jnp.asarray(_stable_guesses(N))[n]
     floor = ROUNDING_FLOOR * jnp.sum(y**2)  # noise-free fits: E at rounding level
 
     def cond(s):
@@ -279,8 +279,6 @@ def _stable_guesses(n_max):
         out[n, :n] = np.polynomial.polynomial.polypow([1.0, 1.0], n)[:n]
     return out
 
-
-_STABLE_GUESS = {n_max: _stable_guesses(n_max) for n_max in range(1, 21)}
 
 
 def _run(c, y, u, max_iter, tol, dt, modes, has_offset):
