@@ -21,30 +21,23 @@ import sys
 from pathlib import Path
 
 CHILD = r"""
-import json, logging, time, warnings
+import json, time, warnings
 warnings.simplefilter("ignore")
 import numpy as np
-import jax
 import mfmjax
 from mfmjax.datasets import simulated_experiment, third_order_two_input
 
-names = []
-class H(logging.Handler):
-    def emit(self, r):
-        m = r.getMessage()
-        if m.startswith("Compiling "):
-            names.append(m.split()[1])
-jax.config.update("jax_log_compiles", True)
-logging.getLogger("jax").addHandler(H())
-logging.getLogger("jax").propagate = False
+import sys
+sys.path.insert(0, TESTS)
+from jaxlog import compiles  # the tests' compile counter (JAX's own log)
 grid = dict(n=(2, 3), N=(4, 5), M=(4, 5), h=(2.5, 3.1))
 rec = lambda s: simulated_experiment(third_order_two_input(), dt=0.05, n_samples=1200, seed=s,
                                      noise_std=0.05)
 first_rec = rec(3)
-names.clear()
-t = time.perf_counter()
-est = mfmjax.estimate(first_rec, **grid)
-first = time.perf_counter() - t
+with compiles() as names:
+    t = time.perf_counter()
+    est = mfmjax.estimate(first_rec, **grid)
+    first = time.perf_counter() - t
 programs = len(names)
 warm = []
 for s in range(10, 15):
@@ -61,7 +54,8 @@ def run(pythonpath: str | None) -> dict:
     env = dict(os.environ, MFMJAX_NO_COMPILE_CACHE="1")
     if pythonpath:
         env["PYTHONPATH"] = pythonpath
-    out = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True, text=True,
+    child = CHILD.replace("TESTS", repr(str(Path(__file__).resolve().parents[1] / "tests")))
+    out = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True,
                          check=True, cwd="/tmp")
     return json.loads(out.stdout.strip().splitlines()[-1])
 

@@ -40,11 +40,13 @@ def padded_model(model: Model, n_max: int, m_max: int | None = None) -> dict:
 
 
 def free(c, has_offset: bool):
-    """Mask of the padded theta's free entries: a_i (i < n), b_kj (j <= m_k), the offset."""
+    """Mask of the padded theta's free entries: a_i (i < n), b_kj (j <= m_k), the offset
+    (NumPy for a concrete `c` from `padded_model`, JAX inside a program)."""
+    xp = jnp if _b.is_traced(c["n"]) or _b.is_traced(c["m"]) else np
     n_max, w = c["a"].shape[0] - 1, c["b"].shape[1]
-    return jnp.concatenate([jnp.arange(n_max) < c["n"],
-                            (jnp.arange(w)[None, :] <= c["m"][:, None]).reshape(-1)]
-                           + ([jnp.ones(1, bool)] if has_offset else []))
+    return xp.concatenate([xp.arange(n_max) < c["n"],
+                           (xp.arange(w)[None, :] <= c["m"][:, None]).reshape(-1)]
+                          + ([xp.ones(1, bool)] if has_offset else []))
 
 
 def theta(c, has_offset: bool):
