@@ -57,12 +57,15 @@ def observe_window(
 
 
 def observe_forced(
-    forced, y, dt: float, start, length: int, ob_length: int | None, state_mask=None
+    forced, y, dt: float, start, length: int, ob_length, state_mask=None, valid=None
 ):
     """`observe_window` on a precomputed whole-record drive (shared by moving windows).
 
     `state_mask` (n,) marks the live states of a zero-padded realisation (batched search over
-    orders): padded states get x = 0 and do not enter the Gramian's conditioning.
+    orders): padded states get x = 0 and do not enter the Gramian's conditioning. `ob_length`
+    may be traced. `valid` (traced, <= `length`) makes only the window's first `valid` samples
+    count (E, the final state, the overflow test): one program for windows of any length up
+    to the static `length` (a record padded beyond `valid`; `y_sim` there is meaningless).
     """
     ss, drive, direct = forced
     n = ss.A.shape[0]
@@ -77,9 +80,11 @@ def observe_forced(
 
     _, (y_f, rows) = jax.lax.scan(step, (jnp.zeros(n), ss.C[0]), dr)
     y_forced = y_f + di
-    q = gregory_weights(length, 0, dt)
-    ob = length if ob_length is None else ob_length
-    q_ob = jnp.zeros(length).at[:ob].set(gregory_weights(ob, 0, dt))
+    q = gregory_weights(length, 0, dt, end=valid)
+    if valid is not None:  # the padding may overflow (an unstable candidate): never count it
+        inside = jnp.arange(length) < valid
+        rows = jnp.where(inside[:, None], rows, 0.0)
+    q_ob = gregory_weights(length, 0, dt, end=length if ob_length is None else ob_length)
     M0 = rows.T @ (q_ob[:, None] * rows)  # observability Gramian over the observer window
     rhs = rows.T @ (q_ob * (yw - y_forced))
     d = 1.0 / jnp.sqrt(jnp.where(jnp.diagonal(M0) > 0, jnp.diagonal(M0), 1.0))
@@ -97,8 +102,12 @@ def observe_forced(
 
     _, xs = jax.lax.scan(traj, x0, dr)
     y_sim = xs @ ss.C[0] + di
-    E = jnp.sum(q * (yw - y_sim) ** 2)
-    x_final = xs[-1]
+    if valid is None:
+        E = jnp.sum(q * (yw - y_sim) ** 2)
+        x_final = xs[-1]
+    else:
+        E = jnp.sum(jnp.where(inside, q * (yw - y_sim) ** 2, 0.0))
+        x_final = jax.lax.dynamic_index_in_dim(xs, valid - 1, keepdims=False)
     status = jnp.where(cond > UNOBSERVABLE_COND, Status.UNOBSERVABLE, 0)
     finite = jnp.all(jnp.isfinite(x0)) & jnp.isfinite(E) & jnp.all(jnp.isfinite(rows))
     status = status | jnp.where(finite, 0, Status.OVERFLOW)

@@ -286,6 +286,10 @@ class OnlineConfig(eqx.Module):
         return self.n_reident * self.interval / 2
 
     @property
+    def window_bound(self) -> int:  # every identification window, padded to this: one program
+        return max(self.n_start, self.n_reident) * self.samples
+
+    @property
     def margin(self) -> int:  # input history the delayed inputs may need before a window
         return math.ceil(self.span_bound / self.dt) + 1
 
@@ -380,24 +384,36 @@ def _plan_for(config: OnlineConfig, intervals: int):
 @functools.lru_cache(maxsize=256)
 def _plan_grid(config: OnlineConfig, intervals: int, delays: tuple, h: tuple | None = None):
     """The candidate grid with a grid of delays per input (`delays`: one tuple per input) and
-    MF widths `h` (default config.h); every delay grid shares one compilation (kernels padded
-    to `span_bound`, or half the window for a window shorter than n_reident; chunks of len(h))."""
-    L = intervals * config.samples
-    span = min(config.span_bound, intervals * config.interval / 2)
-    template = _window_signals(config, np.zeros(L), np.zeros((L, config.n_inputs)), 0.0)
+    MF widths `h` (default config.h) for a window of `intervals` intervals at the start of a
+    record of `window_bound` samples (`_padded_window`): identification and validation cover
+    the window only, so every window length and delay grid with len(h) settings shares one
+    compilation (kernels padded to `span_bound`, validation to `window_bound`)."""
+    L, dt = intervals * config.samples, config.dt
+    bound = config.window_bound
+    template = _window_signals(config, np.zeros(bound), np.zeros((bound, config.n_inputs)), 0.0)
     p = config.n_max + 1 + sum(max(mk) + 1 for mk in config.m) + int(config.offset)
     eta = None if config.eta is None else np.resize(np.asarray(config.eta), p)
+    window = (0.0, (L - 1) * dt)
     return plan_search(
         template, n=config.n, N=config.N, M=config.M, h=config.h if h is None else h, m=config.m,
-        delays=[list(d) for d in delays], score="E", validate=None,
-        observer_window=min(config.T_obinit, (L - 1) * config.dt), eta=eta,
-        chunk_size=len(config.h), simulate=True, span_bound=span,
+        delays=[list(d) for d in delays], score="E", validate=window, identify=window,
+        observer_window=min(config.T_obinit, (L - 1) * dt), eta=eta,
+        chunk_size=len(config.h), simulate=True, span_bound=config.span_bound, v_bound=bound,
     )
 
 
+def _padded_window(config: OnlineConfig, y, u):
+    """A window's samples at the start of a record of `window_bound` samples, its last sample
+    repeated after it (the range of every signal, hence the excitation test, is unchanged;
+    `_plan_grid`'s windows never reach the repeats)."""
+    pad = config.window_bound - y.shape[0]
+    return (np.concatenate([y, np.repeat(y[-1:], pad)]),
+            np.concatenate([u, np.repeat(u[-1:], pad, axis=0)]))
+
+
 @jit
-def _score(sig, static, c):
-    return validate_candidate(sig, static, c)
+def _score(sig, static, where, c):
+    return validate_candidate(sig, static, c, where)
 
 
 @jit
@@ -548,9 +564,9 @@ def _identify_window(state: OnlineState, j: int, w: int, delays: tuple | None = 
     c = state.config
     S = c.samples
     start = (j + 1 - w) * S
-    y, u = _take(state, start, w * S)
+    y, u = _padded_window(c, *_take(state, start, w * S))
     t_start = float(state.t0) + start * c.dt
-    sig = _window_signals(c, y, u, 0.0)  # t0 is static in Signals: one compilation
+    sig = _window_signals(c, y, u, 0.0)
     plan = _plan_for(c, w) if delays is None else _plan_grid(c, w, delays, h)
     return sig, plan, run_plan(plan, sig), (t_start, t_start + w * S * c.dt)
 
@@ -649,7 +665,8 @@ def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
         if not ok:
             return None, None, None, window, "fit window"
         i = ok[0]
-        E_cur = float(_score(sig, plan.static, current)["E"]) if current is not None else None
+        E_cur = (float(_score(sig, plan.static, plan.where, current)["E"])
+                 if current is not None else None)
         return _row(res, i), E_cur, float(res.columns["E"][i]), window, "fit window"
     pools = [(w, None)]
     w_s = w // 2
@@ -896,7 +913,7 @@ def _close_interval(state: OnlineState, j: int):
                 record = _model_record(c, new, window, None, best["E"], "first model", j, "p1")
                 state = eqx.tree_at(lambda s: (s.model, s.op_count), state, (new, np.asarray(1)))
             else:  # Step 4: E_current against E_reident
-                E_cur = float(_score(sig, plan.static, _candidate(c, model))["E"])
+                E_cur = float(_score(sig, plan.static, plan.where, _candidate(c, model))["E"])
                 E_cur_ok = math.isfinite(E_cur)
                 event.update(E_current=E_cur if E_cur_ok else None, E_reident=best["E"])
                 if not E_cur_ok or best["E"] < E_cur:

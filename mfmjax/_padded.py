@@ -108,13 +108,14 @@ def padded_forced(sig: Signals, c, rows=None):
     return (ss, drive, direct), live
 
 
-def observe_padded(sig: Signals, c, start, length: int, ob_length: int):
+def observe_padded(sig: Signals, c, start, length: int, ob_length, valid=None):
     """The observers (eq. 14-15) and E (eq. 17) of a zero-padded candidate on samples
-    `start .. start + length - 1` (`start` traced): `observe_window` for any order at once,
-    the drive computed for the window's samples only (the record can be much longer)."""
+    `start .. start + length - 1` (`start` traced; of them the first `valid`, see
+    `observe_forced`): `observe_window` for any order at once, the drive computed for the
+    window's samples only (the record can be much longer)."""
     yw = jax.lax.dynamic_slice_in_dim(sig.y, start, length)
     forced, live = padded_forced(sig, c, start + jnp.arange(length))
-    return observe_forced(forced, yw, sig.dt, 0, length, ob_length, live)
+    return observe_forced(forced, yw, sig.dt, 0, length, ob_length, live, valid)
 
 
 @jit

@@ -98,8 +98,9 @@ def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
     def run(windows, hold):
         segs = identification_segments(signals, list(windows))
         segs = segs + ((0, 0),) * (S - len(segs))  # empty windows: same program
-        where = jax.device_put({"segments": np.asarray(segs, dtype=np.int32), "v_start":
-                                np.int32(round((hold[0] - signals.t0) / signals.dt))})
+        where = dict(plan.where, **jax.device_put({
+            "segments": np.asarray(segs, dtype=np.int32),
+            "v_start": np.int32(round((hold[0] - signals.t0) / signals.dt))}))
         return run_plan(plan._replace(where=where), signals, records=batch)
 
     fitted = [run(fw, hw) for fw, hw in fold_windows]  # [fold][record]

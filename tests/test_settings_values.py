@@ -142,23 +142,25 @@ def test_scores_new_settings_compile_nothing(noisy):
 
 
 def test_online_identifier_compiles_its_programs_once_per_run(monkeypatch):
-    """Each identification program (one per window length: n_start intervals for the first
-    model, n_reident after) is compiled once in a run, however many identifications it does."""
+    """Every identification window (n_start intervals for the first model, n_reident after) is
+    padded to the longest: each program is compiled once in a run, whatever the window length
+    and however many identifications it does."""
     import mfmjax._online as online
 
-    runs = []
+    windows = []
     real = online.run_plan
-    monkeypatch.setattr(online, "run_plan", lambda plan, sig: runs.append(sig.n_samples)
-                        or real(plan, sig))
+    monkeypatch.setattr(online, "run_plan", lambda plan, sig: windows.append(
+        (sig.n_samples, int(plan.where["v_valid"]))) or real(plan, sig))
     t, y, u, switches = switching_experiment()
     ident = OnlineIdentifier(OnlineConfig(dt=1.0, n_inputs=2, n=(2,), intersample=("foh", "zoh")))
     with compiles() as names:
         for c0 in range(0, len(t), 250):
             ident.update(t[c0 : c0 + 250], y[c0 : c0 + 250], u[c0 : c0 + 250])
-    lengths = set(runs)
-    assert len(runs) >= len(lengths) + 2  # several identifications per window length
+    assert len({n for n, _ in windows}) == 1  # one padded record length
+    assert len({w for _, w in windows}) == 2  # windows of 8 and 4 intervals
+    assert len(windows) >= 4  # several identifications
     for program in ("jit(evaluate_chunk)", "jit(_score)", "jit(_predict)"):
-        assert names.count(program) <= len(lengths), (program, names.count(program), runs)
+        assert names.count(program) <= 1, (program, names.count(program), windows)
 
 
 def test_output_error_new_step_limit_compiles_nothing(noisy):

@@ -112,7 +112,7 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
     padded = -(-total // static.batch) * static.batch
     flat = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], padded - total, 0)]),
                         flat)
-    val = jax.lax.map(lambda c: validate_candidate(sig, static, c, where["v_start"]), flat,
+    val = jax.lax.map(lambda c: validate_candidate(sig, static, c, where), flat,
                       batch_size=static.batch)
     val = {key: v[:total].reshape(shape) for key, v in val.items()}
     status = (out["status"] | val.pop("status")).astype(jnp.int32)
@@ -188,5 +188,5 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None):
         col["group"] = np.repeat(np.arange(n_set), Cg) * len(plan.nm["N"]) + np.tile(col_nm, n_set)
         col["struct"] = np.tile(col_struct, n_set)
         out.append(collect(col, plan.combos, plan.structs, rec, static, plan.score, t_compile,
-                           t_run, int(plan.where["v_start"])))
+                           t_run, plan.where))
     return out if records is not None else out[0]

@@ -65,8 +65,7 @@ class ChunkStatic(eqx.Module):
     col_deriv: tuple[int, ...] = eqx.field(static=True)  # derivative order of every column
     col_source: tuple[int, ...] = eqx.field(static=True)  # source of each of the first p columns
     devices: int = eqx.field(static=True)  # devices the (h, delays) axis is sharded over
-    v_length: int = eqx.field(static=True)
-    ob_length: int = eqx.field(static=True)
+    v_length: int = eqx.field(static=True)  # validation buffer: the window's length or a bound
     simulate: bool = eqx.field(static=True)
     batch: int = eqx.field(static=True)  # candidates per vmapped validation batch
 
@@ -93,8 +92,9 @@ class Plan(NamedTuple):
     score: str
     n_samples: int
     n_inputs: int
-    where: dict  # values, not shapes: "segments" (S, 2) identification windows [start, end) and
-    # "v_start" of the validation window, in samples (a new fold reuses the compiled chunk)
+    where: dict  # values, not shapes: "segments" (S, 2) identification windows [start, end),
+    # the validation window's "v_start" and length "v_valid" and the observer's length "ob", in
+    # samples (a new fold, or a shorter window under `v_bound`, reuses the compiled chunk)
 
 
 def identification_segments(signals: Signals, identify, fn: str = "search") -> tuple:
@@ -119,11 +119,14 @@ def identification_segments(signals: Signals, identify, fn: str = "search") -> t
 
 
 def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
-          chunk_size, simulate, span_bound: float = 0.0, identify=None) -> Plan:
+          chunk_size, simulate, span_bound: float = 0.0, identify=None,
+          v_bound: int | None = None) -> Plan:
     """Check the grid against the record's shape and build the static parts of `search`.
 
-    `span_bound` (time units) pads the kernels to at least this h + delay, so that plans with
-    different delays share one compilation (the on-line identifier)."""
+    `span_bound` (time units) pads the kernels to at least this h + delay, and `v_bound`
+    (samples) the validation window to this length (its samples beyond the window do not
+    count), so that plans with different delays or window lengths share one compilation (the
+    on-line identifier)."""
     if not isinstance(signals, Signals):
         raise TypeError("search(): signals must be a Signals")
     if score not in SCORES:
@@ -188,6 +191,9 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
             "use smaller h"
         )
     v0, v_len, ob = validation_window(signals, validate, observer_window, n_max, "search")
+    if v_bound is not None and not v_len <= v_bound <= signals.n_samples - v0:
+        raise ValueError(f"search(): v_bound={v_bound} must hold the validation window "
+                         f"({v_len} samples) inside the record")
     p = p_needed
     eta = jax.device_put(np.ones(p)) if eta is None else jnp.asarray(eta, dtype=jnp.float64)
     if eta.shape != (p,):
@@ -239,14 +245,16 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
         n_max, m_max, ft_inputs,
         kernel_bucket(kernel_length(max(h_max + delay_max, span_bound), dt)), degree,
         tuple(sources), tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]),
-        len(jax.devices()), v_len, ob, bool(simulate), VALIDATION_BATCH,
+        len(jax.devices()), v_len if v_bound is None else v_bound, bool(simulate),
+        VALIDATION_BATCH,
     )
     mesh = device_mesh()
     n_dev = mesh.devices.size
     chunk = n_dev * math.ceil(min(chunk_size, len(hd)) / n_dev)  # no padding beyond the grid
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("c"))
     where = jax.device_put({"segments": np.asarray(segments, dtype=np.int32),
-                            "v_start": np.asarray(v0, dtype=np.int32)})
+                            "v_start": np.int32(v0), "v_valid": np.int32(v_len),
+                            "ob": np.int32(ob)})
     return Plan(static, eta, structs, cand, nm, hd, combos, (col_nm, col_struct),
                 chunk, sharding, score, signals.n_samples, K, where)
 

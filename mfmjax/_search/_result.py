@@ -153,7 +153,7 @@ def ranking(key, n_par, bad, tie: float | None) -> np.ndarray:
     return np.concatenate([first, order[~tied[order]]])
 
 
-def collect(cols, combos, structs, signals, static, score, t_compile, t_run, v_start: int):
+def collect(cols, combos, structs, signals, static, score, t_compile, t_run, where: dict):
     g, st = cols.pop("group"), cols.pop("struct")
     grid = np.asarray([(c[0], c[1], c[2]) for c in combos])
     cols["n"] = np.asarray([s[0] for s in structs])[st]
@@ -165,7 +165,8 @@ def collect(cols, combos, structs, signals, static, score, t_compile, t_run, v_s
     key = np.where(np.isfinite(key), key, np.inf)
     tie = None  # candidates within `tie` of the best usable score are tied: fewer parameters win
     if score == "E":  # E below rounding noise (1e-12 of the output energy)
-        yv = np.asarray(signals.y)[v_start : v_start + static.v_length]
+        v_start = int(where["v_start"])
+        yv = np.asarray(signals.y)[v_start : v_start + int(where["v_valid"])]
         tie = E_TIE_RTOL * float(np.sum(yv**2)) * signals.dt
     if score == "J":  # J below sqrt(p eps) is the float64 noise of theta' G theta
         tie = math.sqrt(cols["theta"].shape[1] * np.finfo(np.float64).eps)

@@ -6,20 +6,31 @@ import jax
 import jax.numpy as jnp
 
 from .._linalg import hurwitz
-from .._observers import fit_percent
 from .._padded import observe_padded
 from .._signals import Signals
 from .._status import Status
 from ._grid import ChunkStatic
 
 
-def validate_candidate(sig: Signals, static: ChunkStatic, c, v_start=0):
-    """E (eq. 17), fit and information criteria of one candidate on the validation window, the
-    simulation started from the initial-state observer (eq. 14) of a zero-padded realisation."""
-    yv = jax.lax.dynamic_slice_in_dim(sig.y, v_start, static.v_length)
-    obs = observe_padded(sig, c, v_start, static.v_length, static.ob_length)
+def validate_candidate(sig: Signals, static: ChunkStatic, c, where):
+    """E (eq. 17), fit and information criteria of one candidate on the validation window
+    (`where`: its start "v_start", its length "v_valid" <= `static.v_length` and the observer's
+    "ob", all values), the simulation started from the initial-state observer (eq. 14) of a
+    zero-padded realisation."""
+    start, valid = where["v_start"], where["v_valid"]
+    yv = jax.lax.dynamic_slice_in_dim(sig.y, start, static.v_length)
+    obs = observe_padded(sig, c, start, static.v_length, where["ob"], valid)
     status = obs.status | jnp.where(hurwitz(c["a"]), 0, Status.UNSTABLE)
-    Nv = static.v_length
+    inside = jnp.arange(static.v_length) < valid
+    Nv = valid.astype(jnp.float64)
     loglik = Nv * jnp.log(jnp.maximum(obs.E / (Nv * sig.dt), 1e-300))
-    return dict(E=obs.E, fit=fit_percent(yv, obs.y_sim), aic=loglik + 2 * c["k"],
+    return dict(E=obs.E, fit=_fit(yv, obs.y_sim, inside, Nv), aic=loglik + 2 * c["k"],
                 bic=loglik + c["k"] * jnp.log(Nv), status=status)
+
+
+def _fit(y, y_sim, inside, count):
+    """`fit_percent` on the samples `inside` (`count` of them)."""
+    y_mean = jnp.sum(jnp.where(inside, y, 0.0)) / count
+    spread = jnp.sqrt(jnp.sum(jnp.where(inside, (y - y_mean) ** 2, 0.0)))
+    miss = jnp.sqrt(jnp.sum(jnp.where(inside, (y - y_sim) ** 2, 0.0)))
+    return 100.0 * (1.0 - miss / jnp.where(spread > 0, spread, jnp.nan))
