@@ -398,7 +398,8 @@ def _plan_grid(config: OnlineConfig, intervals: int, delays: tuple, h: tuple | N
         template, n=config.n, N=config.N, M=config.M, h=config.h if h is None else h, m=config.m,
         delays=[list(d) for d in delays], score="E", validate=window, identify=window,
         observer_window=min(config.T_obinit, (L - 1) * dt), eta=eta,
-        chunk_size=len(config.h), simulate=True, span_bound=config.span_bound, v_bound=bound,
+        chunk_size=len(config.h), simulate=True, span_bound=config.span_bound, n_padded=bound,
+        v_bound=bound,
     )
 
 

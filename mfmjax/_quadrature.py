@@ -61,6 +61,17 @@ def kernel_bucket(length: int) -> int:
     return b
 
 
+def record_bucket(n_samples: int) -> int:
+    """Compiled record length for `n_samples`: the next of 4, 5, 6, 7 or 8 times a power of two
+    (at most 1.25x the samples; records up to 64 samples keep their length). A search pads its
+    record to it and masks the padding exactly, so records of every length in a bucket share
+    one program."""
+    if n_samples <= 64:
+        return n_samples
+    k = (n_samples - 1).bit_length() - 3
+    return next(m << k for m in (4, 5, 6, 7, 8) if m << k >= n_samples)
+
+
 def kernel_weights(mf: ModulatingFunction, i: int, dt: float, rule: str, delay, length: int):
     r"""Weights $w_l$, $l = 0..$`length`$-1$, of the modulated signal $x_i$ (see module doc).
 

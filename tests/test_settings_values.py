@@ -79,6 +79,40 @@ def test_search_new_settings_inside_a_bucket_compile_nothing(record):
     assert sorted(set(np.round(res.columns["h"], 12))) == [2.45, 2.9]
 
 
+def test_search_new_record_length_inside_a_bucket_compiles_nothing():
+    """Records of 1100 and 1200 samples pad to one length (`record_bucket`: 1280) and share the
+    compiled chunk (E scored on the whole record, observer over its first 10 s). The padding
+    is masked exactly: on the short record the search equals the identify of each candidate
+    (whose programs have the record's own length) to the rounding of the longer FFT amplified
+    by the Gram's conditioning (cond < 1e8: 1e-8 relative), and its E is the observer +
+    simulation's on the record, not on the padding."""
+    from mfmjax._quadrature import record_bucket
+
+    assert record_bucket(1100) == record_bucket(1200) == 1280
+    long = simulated_experiment(third_order_two_input(), dt=DT, n_samples=1200, seed=6,
+                                noise_std=0.02)
+    short = Signals(np.asarray(long.y)[:1100], np.asarray(long.u)[:1100], dt=DT,
+                    intersample=long.intersample)
+    grid = dict(n=(1, 2, 3), m=[(0, 1), (0, 1)], N=(4, 5), M=(4, 5), h=(2.5, 3.1),
+                observer_window=10.0)
+    mfmjax.search(long, **grid)
+    with compiles() as names:
+        res = mfmjax.search(short, **grid)
+    assert names == [], f"a new record length compiled {names}"
+    for i in range(4):
+        row = res.row(i)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = mfmjax.identify(short, Structure(row["n"], row["m"]),
+                                    ModulatingFunction(row["N"], row["M"], row["h"]))
+        assert float(model.cond) < 1e8
+        got = np.concatenate([row["a"]] + [np.asarray(b) for b in row["b"]])
+        ref = np.concatenate([np.asarray(model.a)] + [np.asarray(b) for b in model.b])
+        assert np.max(np.abs(got - ref)) <= 1e-8 * np.max(np.abs(ref)), row
+        E = float(mfmjax.performance_index(model, short, observer_window=10.0))
+        assert row["E"] == pytest.approx(E, rel=1e-6)
+
+
 def test_new_t0_and_names_compile_nothing(record):
     mf = ModulatingFunction(4, 5, 2.6)
     mfmjax.identify(record, ST, mf)

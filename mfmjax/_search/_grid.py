@@ -20,6 +20,7 @@ from .._quadrature import (
     kernel_bucket,
     kernel_length,
     legendre_coefficients,
+    record_bucket,
 )
 from .._signals import Signals
 
@@ -91,6 +92,7 @@ class Plan(NamedTuple):
     sharding: jax.sharding.NamedSharding
     score: str
     n_samples: int
+    n_padded: int  # the record padded to this length (`record_bucket`) before the chunk sees it
     n_inputs: int
     where: dict  # values, not shapes: "segments" (S, 2) identification windows [start, end),
     # the validation window's "v_start" and length "v_valid" and the observer's length "ob", in
@@ -120,12 +122,14 @@ def identification_segments(signals: Signals, identify, fn: str = "search") -> t
 
 def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
           chunk_size, simulate, span_bound: float = 0.0, identify=None,
-          v_bound: int | None = None) -> Plan:
+          n_padded: int | None = None, v_bound: int | None = None) -> Plan:
     """Check the grid against the record's shape and build the static parts of `search`.
 
-    `span_bound` (time units) pads the kernels to at least this h + delay, and `v_bound`
-    (samples) the validation window to this length (its samples beyond the window do not
-    count), so that plans with different delays or window lengths share one compilation (the
+    The record is padded to `n_padded` samples (default `record_bucket`) and the validation
+    window to `v_bound` (default its `record_bucket`, inside the padded record); neither
+    padding counts (the Gram integral and E end with the data), so records and windows of
+    every length in a bucket share one compilation. `span_bound` (time units) pads the
+    kernels to at least this h + delay, so that plans with different delays share one (the
     on-line identifier)."""
     if not isinstance(signals, Signals):
         raise TypeError("search(): signals must be a Signals")
@@ -191,9 +195,12 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
             "use smaller h"
         )
     v0, v_len, ob = validation_window(signals, validate, observer_window, n_max, "search")
-    if v_bound is not None and not v_len <= v_bound <= signals.n_samples - v0:
-        raise ValueError(f"search(): v_bound={v_bound} must hold the validation window "
-                         f"({v_len} samples) inside the record")
+    T_pad = record_bucket(signals.n_samples) if n_padded is None else n_padded
+    if v_bound is None:
+        v_bound = min(record_bucket(v_len), T_pad - v0)
+    if not (signals.n_samples <= T_pad and v_len <= v_bound <= T_pad - v0):
+        raise ValueError(f"search(): the validation window ({v_len} samples) must fit "
+                         f"v_bound={v_bound} inside the padded record ({T_pad} samples)")
     p = p_needed
     eta = jax.device_put(np.ones(p)) if eta is None else jnp.asarray(eta, dtype=jnp.float64)
     if eta.shape != (p,):
@@ -245,7 +252,7 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
         n_max, m_max, ft_inputs,
         kernel_bucket(kernel_length(max(h_max + delay_max, span_bound), dt)), degree,
         tuple(sources), tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]),
-        len(jax.devices()), v_len if v_bound is None else v_bound, bool(simulate),
+        len(jax.devices()), v_bound, bool(simulate),
         VALIDATION_BATCH,
     )
     mesh = device_mesh()
@@ -256,7 +263,7 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
                             "v_start": np.int32(v0), "v_valid": np.int32(v_len),
                             "ob": np.int32(ob)})
     return Plan(static, eta, structs, cand, nm, hd, combos, (col_nm, col_struct),
-                chunk, sharding, score, signals.n_samples, K, where)
+                chunk, sharding, score, signals.n_samples, T_pad, K, where)
 
 
 @functools.lru_cache(maxsize=128)
