@@ -285,9 +285,14 @@ class OnlineConfig(eqx.Module):
     def span_bound(self) -> float:  # h + delay < this (checked): fixes the compiled shapes
         return self.n_reident * self.interval / 2
 
-    @property
-    def window_bound(self) -> int:  # every identification window, padded to this: one program
-        return max(self.n_start, self.n_reident) * self.samples
+    def window_bound(self, intervals: int) -> int:
+        """Samples an identification window of `intervals` intervals is padded to: the longest
+        window (max(n_start, n_reident) intervals), or half of it (rounded up) for a window
+        that fits in half: two programs serve every window, none pays more than twice its own
+        length (paper mode's 8- and 4-interval windows keep their length)."""
+        longest = max(self.n_start, self.n_reident)
+        half = -(-longest // 2)
+        return (half if intervals <= half else longest) * self.samples
 
     @property
     def margin(self) -> int:  # input history the delayed inputs may need before a window
@@ -385,11 +390,13 @@ def _plan_for(config: OnlineConfig, intervals: int):
 def _plan_grid(config: OnlineConfig, intervals: int, delays: tuple, h: tuple | None = None):
     """The candidate grid with a grid of delays per input (`delays`: one tuple per input) and
     MF widths `h` (default config.h) for a window of `intervals` intervals at the start of a
-    record of `window_bound` samples (`_padded_window`): identification and validation cover
-    the window only, so every window length and delay grid with len(h) settings shares one
-    compilation (kernels padded to `span_bound`, validation to `window_bound`)."""
+    record of `window_bound(intervals)` samples (`_padded_window`): identification and
+    validation cover the window only, so the window lengths of one bound and every delay grid
+    with len(h) settings share one compilation (kernels padded to `span_bound`, or to half
+    the bound's duration for a shorter bound)."""
     L, dt = intervals * config.samples, config.dt
-    bound = config.window_bound
+    bound = config.window_bound(intervals)
+    span = min(config.span_bound, bound * dt / 2)
     template = _window_signals(config, np.zeros(bound), np.zeros((bound, config.n_inputs)), 0.0)
     p = config.n_max + 1 + sum(max(mk) + 1 for mk in config.m) + int(config.offset)
     eta = None if config.eta is None else np.resize(np.asarray(config.eta), p)
@@ -398,7 +405,7 @@ def _plan_grid(config: OnlineConfig, intervals: int, delays: tuple, h: tuple | N
         template, n=config.n, N=config.N, M=config.M, h=config.h if h is None else h, m=config.m,
         delays=[list(d) for d in delays], score="E", validate=window, identify=window,
         observer_window=min(config.T_obinit, (L - 1) * dt), eta=eta,
-        chunk_size=len(config.h), simulate=True, span_bound=config.span_bound, n_padded=bound,
+        chunk_size=len(config.h), simulate=True, span_bound=span, n_padded=bound,
         v_bound=bound,
     )
 
@@ -407,7 +414,7 @@ def _padded_window(config: OnlineConfig, y, u):
     """A window's samples at the start of a record of `window_bound` samples, its last sample
     repeated after it (the range of every signal, hence the excitation test, is unchanged;
     `_plan_grid`'s windows never reach the repeats)."""
-    pad = config.window_bound - y.shape[0]
+    pad = config.window_bound(y.shape[0] // config.samples) - y.shape[0]
     return (np.concatenate([y, np.repeat(y[-1:], pad)]),
             np.concatenate([u, np.repeat(u[-1:], pad, axis=0)]))
 

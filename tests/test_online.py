@@ -429,13 +429,8 @@ def _forehearth(ex, mode, **kw):
 # 1.095647457093332 and 0.6043796413584612, the same models. Since the search plan computes its
 # Legendre coefficients in NumPy on the host (no eager XLA programs), they differ from XLA's by
 # rounding (7e-16 relative), and Algorithm 1's chain of identifications carries that to 1.2e-9
-# and 3.0e-9 relative in the MSE: 1.09564745574115 and 0.6043796431933918. Since every
-# identification window is padded to the longest one (`_plan_grid`: one compiled program), the
-# 4-interval re-identification windows are convolved in FFTs of the 8-interval length: their
-# moments differ by rounding, which the Grams' conditioning carries to 3e-8..4e-6 relative in
-# those models' parameters and to 4.6e-8 and 5.2e-9 relative in the MSE: the values below,
-# re-measured then; every model's settings, structure and start time equal, first models bitwise.
-PAPER_TODAY = {1: (1.095647404807495, 6), 2: (0.60437964003061, 12)}
+# and 3.0e-9 relative in the MSE: the values below, re-measured then; models and counts equal.
+PAPER_TODAY = {1: (1.09564745574115, 6), 2: (0.6043796431933918, 12)}
 
 
 @pytest.mark.slow

@@ -176,9 +176,10 @@ def test_scores_new_settings_compile_nothing(noisy):
 
 
 def test_online_identifier_compiles_its_programs_once_per_run(monkeypatch):
-    """Every identification window (n_start intervals for the first model, n_reident after) is
-    padded to the longest: each program is compiled once in a run, whatever the window length
-    and however many identifications it does."""
+    """Identification windows are padded to `OnlineConfig.window_bound`: with n_start = 8 and
+    n_reident = 6 both windows fit the 8-interval record (the 6-interval one does not fit in
+    half of it), so each program is compiled once in a run, whatever the window length and
+    however many identifications it does."""
     import mfmjax._online as online
 
     windows = []
@@ -186,12 +187,14 @@ def test_online_identifier_compiles_its_programs_once_per_run(monkeypatch):
     monkeypatch.setattr(online, "run_plan", lambda plan, sig: windows.append(
         (sig.n_samples, int(plan.where["v_valid"]))) or real(plan, sig))
     t, y, u, switches = switching_experiment()
-    ident = OnlineIdentifier(OnlineConfig(dt=1.0, n_inputs=2, n=(2,), intersample=("foh", "zoh")))
+    cfg = OnlineConfig(dt=1.0, n_inputs=2, n=(2,), intersample=("foh", "zoh"), n_reident=6)
+    assert cfg.window_bound(6) == cfg.window_bound(8) == 2000 and cfg.window_bound(4) == 1000
+    ident = OnlineIdentifier(cfg)
     with compiles() as names:
         for c0 in range(0, len(t), 250):
             ident.update(t[c0 : c0 + 250], y[c0 : c0 + 250], u[c0 : c0 + 250])
-    assert len({n for n, _ in windows}) == 1  # one padded record length
-    assert len({w for _, w in windows}) == 2  # windows of 8 and 4 intervals
+    assert {n for n, _ in windows} == {2000}  # one padded record length
+    assert {w for _, w in windows} == {2000, 1500}  # windows of 8 and 6 intervals
     assert len(windows) >= 4  # several identifications
     for program in ("jit(evaluate_chunk)", "jit(_score)", "jit(_predict)"):
         assert names.count(program) <= 1, (program, names.count(program), windows)
