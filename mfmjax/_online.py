@@ -56,7 +56,7 @@ from ._jit import jit
 from ._model import Model, plain_number
 from ._observers import observe_forced
 from ._padded import padded_forced
-from ._search import plan_search, run_plan, validate_candidate
+from ._search import edge_padded, plan_search, run_plan, validate_candidate
 from ._signals import INTERSAMPLE, Signals
 from ._status import Status
 
@@ -415,8 +415,7 @@ def _padded_window(config: OnlineConfig, y, u):
     repeated after it (the range of every signal, hence the excitation test, is unchanged;
     `_plan_grid`'s windows never reach the repeats)."""
     pad = config.window_bound(y.shape[0] // config.samples) - y.shape[0]
-    return (np.concatenate([y, np.repeat(y[-1:], pad)]),
-            np.concatenate([u, np.repeat(u[-1:], pad, axis=0)]))
+    return edge_padded(y, pad), edge_padded(u, pad)
 
 
 @jit

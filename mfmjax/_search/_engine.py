@@ -130,7 +130,7 @@ def chunk_records_jit(sig: Signals, ys, us, *args):
         lambda yu: evaluate_chunk(eqx.tree_at(lambda s: (s.y, s.u), sig, yu), *args), (ys, us))
 
 
-def _edge_padded(x: np.ndarray, pad: int) -> np.ndarray:
+def edge_padded(x: np.ndarray, pad: int) -> np.ndarray:
     """`x` (T, ...) with its last sample repeated `pad` times: every signal's range, hence the
     excitation and scale tests, is unchanged, and the delayed inputs see the held last sample
     that `shift_samples` gives beyond a record's end."""
@@ -153,8 +153,9 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None):
     col_nm, col_struct = plan.columns
     Cg = len(col_nm)  # candidates per (h, delays) setting
     pad = plan.n_padded - plan.n_samples
-    ys, us = (np.stack([_edge_padded(np.asarray(x), pad) for x in xs])  # NumPy: no program
+    ys, us = (np.stack([edge_padded(np.asarray(x), pad) for x in xs])  # NumPy: no program
               for xs in ([r.y for r in batch], [r.u for r in batch]))
+    sig = eqx.tree_at(lambda s: (s.y, s.u), signals.unlabelled(), (ys[0], us[0]))
     cols, times = [{} for _ in batch], []
     for c0 in range(0, len(hd), chunk):
         idx = list(range(c0, min(c0 + chunk, len(hd))))
@@ -168,10 +169,8 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None):
         t0 = time.perf_counter()
         args = (static, plan.eta, g, plan.cand, plan.nm, plan.where)
         if len(batch) == 1:  # one record: the program `search` uses
-            sig = eqx.tree_at(lambda s: (s.y, s.u), signals.unlabelled(), (ys[0], us[0]))
             res = [jax.block_until_ready(chunk_jit(sig, *args))]
         else:
-            sig = eqx.tree_at(lambda s: (s.y, s.u), signals.unlabelled(), (ys[0], us[0]))
             out = jax.device_get(chunk_records_jit(sig, ys, us, *args))
             res = [jax.tree.map(lambda x, r=r: x[r], out) for r in range(len(records))]
         if jax.process_count() > 1:  # multi-host: every process gets every candidate
