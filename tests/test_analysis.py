@@ -58,6 +58,7 @@ def resid_twin(e, u, L):
         Ru0 = corr_twin(ub, ub, 0)
         c = np.array([corr_twin(eb, ub, tau) / math.sqrt(Re0 * Ru0) for tau in range(-L, L + 1)])
 
+        @functools.cache
         def r_uu(j):
             return corr_twin(ub, ub, abs(j)) / Ru0
 
