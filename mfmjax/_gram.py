@@ -92,12 +92,15 @@ def compiled_length(signals: Signals, mf: ModulatingFunction, delay_max: float |
 
 def modulated_signals(
     signals: Signals, structure: Structure, mf: ModulatingFunction, delay_max: float | None = None,
-    *, length: int | None = None,
+    *, length: int | None = None, end=None,
 ) -> ModulatedSignals:
     r"""All columns of $c(t)$ (eq. 6), scaled as described in the module docstring.
 
     `length` is the static kernel length (default: what h_max and delay_max need); a support
-    longer than it is reported in `fits`, never truncated silently."""
+    longer than it is reported in `fits`, never truncated silently. `end` (may be traced): the
+    Gram integral ends before sample `end` (default: the record's end), e.g. on a record padded
+    to its `record_bucket`; the columns are causal, so those before `end` do not see the
+    padding."""
     require_x64("modulated_signals")
     dt = signals.dt
     if length is None:
@@ -117,7 +120,7 @@ def modulated_signals(
         cols.append(modulate(x, W).T)
         bounds.append(jnp.sum(jnp.abs(W), axis=1) * jnp.max(jnp.abs(x)))
         first = jnp.maximum(first, support_samples(tau + mf.h, dt))
-    q = gregory_weights(T, first, dt)
+    q = gregory_weights(T, first, dt, end)
     bounds = jnp.concatenate(bounds) * jnp.sqrt(jnp.sum(q))
     u = signals.u
     spread = jnp.max(u, axis=0, initial=-jnp.inf) - jnp.min(u, axis=0, initial=jnp.inf)

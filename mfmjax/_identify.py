@@ -19,6 +19,7 @@ from ._gram import (
 from ._jit import jit
 from ._model import Model
 from ._modulating import ModulatingFunction, as_values
+from ._quadrature import edge_padded, record_bucket
 from ._signals import Signals
 from ._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
 from ._status import Status, describe
@@ -65,10 +66,11 @@ def _fmt(v):
 
 
 @jit
-def identify_core(signals, structure, mf, eta, length: int):
+def identify_core(signals, structure, mf, eta, length: int, end=None):
     """The compiled core: `signals` unlabelled, `mf` as values (`as_values`), `length` the static
-    kernel length (`compiled_length`). One program per (structure, record shape, length bucket)."""
-    ms = modulated_signals(signals, structure, mf, length=length)
+    kernel length (`compiled_length`), `end` the record's own length when `signals` are padded
+    (`bucketed`). One program per (structure, record bucket, kernel bucket)."""
+    ms = modulated_signals(signals, structure, mf, length=length, end=end)
     G = gram(ms)
     K = signals.n_inputs
     n = structure.n
@@ -114,6 +116,18 @@ def identify_core(signals, structure, mf, eta, length: int):
     )
 
 
+def bucketed(signals: Signals):
+    """(`signals` padded to their `record_bucket` by repeating the last sample, their length as
+    a value): records of every length in a bucket share one compiled `identify_core`. Traced
+    signals (inside a user's jit or vmap) are returned as they are, with `end` None."""
+    if not _concrete(signals.y) or not _concrete(signals.u):
+        return signals, None
+    T = signals.n_samples
+    pad = record_bucket(T) - T
+    y, u = (edge_padded(np.asarray(x), pad) for x in (signals.y, signals.u))  # NumPy: no program
+    return eqx.tree_at(lambda s: (s.y, s.u), signals, (y, u)), np.int32(T)
+
+
 def identify(
     signals: Signals,
     structure: Structure,
@@ -144,7 +158,9 @@ def identify(
 
     Settings are values: N, M, h and the delays enter the compiled program as arrays, and the
     kernel length is bucketed (`kernel_bucket`), so a new setting whose h + delays fit the
-    current bucket reuses the program; t0 and the signal names never enter it. A traced h (or
+    current bucket reuses the program; the record is padded to its `record_bucket` and the
+    padding masked exactly, so a new record length inside a bucket reuses it too; t0 and the
+    signal names never enter it. A traced h (or
     delay) beyond its static bound sets `Status.OUT_OF_BOUNDS` instead of truncating.
     """
     from ._boundary import check_identify
@@ -152,7 +168,8 @@ def identify(
     check_identify(signals, structure, mf, eta, delay_max)
     structure, eta = _check(signals, structure, mf, eta)
     length = compiled_length(signals, mf, delay_max)
-    model = identify_core(signals.unlabelled(), structure, as_values(mf), eta, length)
+    padded, end = bucketed(signals.unlabelled())
+    model = identify_core(padded, structure, as_values(mf), eta, length, end)
     model = model.labelled(signals.output_name, signals.input_names)
     if _concrete(model.status) and model.status.ndim == 0 and int(model.status) != 0:
         warnings.warn(

@@ -56,7 +56,8 @@ from ._jit import jit
 from ._model import Model, plain_number
 from ._observers import observe_forced
 from ._padded import padded_forced
-from ._search import edge_padded, plan_search, run_plan, validate_candidate
+from ._quadrature import edge_padded
+from ._search import plan_search, run_plan, validate_candidate
 from ._signals import INTERSAMPLE, Signals
 from ._status import Status
 

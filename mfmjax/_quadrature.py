@@ -72,6 +72,13 @@ def record_bucket(n_samples: int) -> int:
     return next(m << k for m in (4, 5, 6, 7, 8) if m << k >= n_samples)
 
 
+def edge_padded(x: np.ndarray, pad: int) -> np.ndarray:
+    """`x` (T, ...) with its last sample repeated `pad` times: every signal's range, hence the
+    excitation and scale tests, is unchanged, and the delayed inputs see the held last sample
+    that `shift_samples` gives beyond a record's end."""
+    return np.concatenate([x, np.repeat(x[-1:], pad, axis=0)])
+
+
 def kernel_weights(mf: ModulatingFunction, i: int, dt: float, rule: str, delay, length: int):
     r"""Weights $w_l$, $l = 0..$`length`$-1$, of the modulated signal $x_i$ (see module doc).
 

@@ -65,6 +65,34 @@ def test_identify_values_equal_exact_kernel_length(record):
     assert diff <= 1e-10 * np.max(np.abs(np.asarray(exact.theta)))
 
 
+def test_identify_new_record_length_inside_a_bucket_compiles_nothing():
+    """Records of 1100 and 1200 samples pad to one length (`record_bucket`: 1280) and share one
+    compiled `identify_core`. The padding is masked exactly: on the short (noisy) record the
+    parameters equal those of the core run on the unpadded record (its own length) to rounding
+    (the FFT size and summation order change), 1e-10 relative norm-wise as above, and so does
+    J_rel (the noise keeps it far above rounding: 1e-8)."""
+    from mfmjax._identify import identify_core
+    from mfmjax._modulating import as_values
+    from mfmjax._quadrature import kernel_length, record_bucket
+
+    assert record_bucket(1100) == record_bucket(1200) == 1280
+    mf = ModulatingFunction(4, 5, 2.6)
+    long = simulated_experiment(third_order_two_input(), dt=DT, n_samples=1200, seed=6,
+                                noise_std=0.02)
+    short = Signals(np.asarray(long.y)[:1100], np.asarray(long.u)[:1100], dt=DT,
+                    intersample=long.intersample)
+    mfmjax.identify(long, ST, mf)
+    with compiles() as names:
+        model = mfmjax.identify(short, ST, mf)
+    assert names == [], f"a new record length compiled {names}"
+    exact = identify_core(short.unlabelled(), ST.for_inputs(2), as_values(mf), jnp.ones(8),
+                          kernel_length(2.6, DT))
+    assert exact.theta.shape == model.theta.shape and int(model.status) == int(exact.status) == 0
+    diff = np.max(np.abs(np.asarray(model.theta) - np.asarray(exact.theta)))
+    assert diff <= 1e-10 * np.max(np.abs(np.asarray(exact.theta)))
+    assert float(model.J_rel) == pytest.approx(float(exact.J_rel), rel=1e-8)
+
+
 def test_search_new_settings_inside_a_bucket_compile_nothing(record):
     """A search over other N, M and h values (same grid sizes, same largest N + M, largest h in
     the same kernel bucket: 50..64 samples -> 64) and a new t0 and names reuses the compiled
@@ -83,7 +111,7 @@ def test_search_new_record_length_inside_a_bucket_compiles_nothing():
     """Records of 1100 and 1200 samples pad to one length (`record_bucket`: 1280) and share the
     compiled chunk (E scored on the whole record, observer over its first 10 s). The padding
     is masked exactly: on the short record the search equals the identify of each candidate
-    (whose programs have the record's own length) to the rounding of the longer FFT amplified
+    (padded alike, and itself checked against the record's own length above) to rounding amplified
     by the Gram's conditioning (cond < 1e8: 1e-8 relative), and its E is the observer +
     simulation's on the record, not on the padding."""
     from mfmjax._quadrature import record_bucket

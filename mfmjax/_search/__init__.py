@@ -26,7 +26,6 @@ Each chunk's setting axis is sharded over all `jax.devices()` with a 1-D mesh
 time (`lax.map`: cache-sized) and the small solves are batched over the whole chunk.
 """
 
-from ._engine import edge_padded as edge_padded
 from ._engine import run_plan as run_plan
 from ._grid import SCORES as SCORES
 from ._grid import plan_search as plan_search

@@ -15,6 +15,7 @@ from .._identify import FEEDTHROUGH_STEPS
 from .._jit import jit
 from .._signals import Signals
 from .._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
+from .._quadrature import edge_padded
 from ._grid import ChunkStatic, Plan
 from ._moments import moment_gram
 from ._result import collect
@@ -83,9 +84,9 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
         H, W, scale = moment_gram(sig, static, h, delays, where["segments"])
         return jax.vmap(lambda coef: one_nm(H, W, scale, h, coef))(nm["coef"])
 
-    def solve_group(h, Gx, alive):  # every candidate of one (h, delays) setting
-        return jax.vmap(lambda c: solve(Gx[c["nm"]], alive[c["nm"]], h, nm["N"][c["nm"]],
-                                        nm["M"][c["nm"]], c))(cand)
+    def solve_pair(g, c):  # candidate `c` at setting `g`
+        return solve(Gx[g, c["nm"]], alive[g, c["nm"]], groups["h"][g], nm["N"][c["nm"]],
+                     nm["M"][c["nm"]], c)
 
     # the signal-sized work one setting at a time (cache-sized; vmapped over the devices'
     # blocks of the sharded axis), the small solves batched over all of them
@@ -93,7 +94,11 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
     Gx, alive = jax.vmap(lambda hd: jax.lax.map(grams, hd))(
         (groups["h"].reshape(per_dev), groups["delays"].reshape(per_dev + (K,))))
     Gx, alive = Gx.reshape((-1,) + Gx.shape[2:]), alive.reshape((-1,) + alive.shape[2:])
-    out = jax.vmap(solve_group)(groups["h"], Gx, alive)  # (G, C_group, ...)
+    # one vmap over every (setting, candidate) pair: a smaller program than two nested ones
+    G, C = groups["h"].shape[0], cand["n"].shape[0]
+    pairs = jax.tree.map(lambda x: jnp.tile(x, (G,) + (1,) * (x.ndim - 1)), cand)
+    out = jax.vmap(solve_pair)(jnp.repeat(jnp.arange(G), C), pairs)
+    out = jax.tree.map(lambda x: x.reshape((G, C) + x.shape[1:]), out)  # (G, C_group, ...)
     shape = out["status"].shape
     if not static.simulate:  # equation error only (score J)
         nan = jnp.full(shape, jnp.nan)
@@ -128,13 +133,6 @@ def chunk_records_jit(sig: Signals, ys, us, *args):
     one after another inside one compiled call (`lax.map`: memory of one record)."""
     return jax.lax.map(
         lambda yu: evaluate_chunk(eqx.tree_at(lambda s: (s.y, s.u), sig, yu), *args), (ys, us))
-
-
-def edge_padded(x: np.ndarray, pad: int) -> np.ndarray:
-    """`x` (T, ...) with its last sample repeated `pad` times: every signal's range, hence the
-    excitation and scale tests, is unchanged, and the delayed inputs see the held last sample
-    that `shift_samples` gives beyond a record's end."""
-    return np.concatenate([x, np.repeat(x[-1:], pad, axis=0)])
 
 
 def place(x: np.ndarray, sharding):
