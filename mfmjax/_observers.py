@@ -24,7 +24,7 @@ from ._boundary import require_x64
 from ._jit import jit
 from ._linalg import conditioning_eigvals, expm, solve
 from ._model import Model
-from ._quadrature import gregory_weights
+from ._quadrature import edge_padded, gregory_weights, record_bucket
 from ._signals import Signals
 from ._simulate import forced_response
 from ._status import Status
@@ -45,15 +45,17 @@ class Observation(eqx.Module):
 
 
 def observe_window(
-    model: Model, y, u, dt: float, start, length: int, ob_length: int | None = None
+    model: Model, y, u, dt: float, start, length: int, ob_length=None, valid=None
 ) -> Observation:
     """Observers + E on samples `start .. start+length-1` of a record (y (T,), u (T, K)).
 
     `length` is static, `start` may be traced (moving windows, eq. 16). Inputs before `start`
     are taken from the record (delays see the real history). The initial-state observer uses the
-    first `ob_length` samples (default all); the simulation and E cover the whole window.
+    first `ob_length` samples (default all); the simulation and E cover the whole window, or its
+    first `valid` samples (`observe_forced`).
     """
-    return observe_forced(forced_response(model, u, dt), y, dt, start, length, ob_length)
+    return observe_forced(forced_response(model, u, dt), y, dt, start, length, ob_length, None,
+                          valid)
 
 
 def observe_forced(
@@ -205,9 +207,23 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
                 f"observe(): observer_window={observer_window:g} must hold {MIN_WINDOW} to "
                 f"{length} samples of the window"
             )
-    obs = _observe(model.unlabelled(), signals.y, signals.u, signals.dt,
-                   jnp.asarray(start, dtype=jnp.int32), length, ob)
-    return checked(obs, "observe")
+    if _b.is_traced(signals.y) or _b.is_traced(signals.u):
+        obs = _observe(model.unlabelled(), signals.y, signals.u, signals.dt,
+                       jnp.asarray(start, dtype=jnp.int32), length, ob)
+        return checked(obs, "observe")
+    # the window padded to its record bucket, the record to hold it, both by repeating the
+    # last sample; only the window's own samples count (`observe_forced`'s `valid`), so windows
+    # and records of every length in a bucket share one program
+    bound = record_bucket(length)
+    pad = record_bucket(max(signals.n_samples, start + bound)) - signals.n_samples
+    y, u = (edge_padded(np.asarray(x), pad) for x in (signals.y, signals.u))  # NumPy: no program
+    obs = _observe(model.unlabelled(), y, u, signals.dt, np.int32(start), bound,
+                   np.int32(length if ob is None else ob), np.int32(length))
+    if _b.is_traced(obs.y_sim):  # a traced model
+        y_sim = obs.y_sim[:length]
+    else:
+        y_sim = jax.device_put(np.asarray(obs.y_sim)[:length])  # host slice: no program
+    return checked(eqx.tree_at(lambda o: o.y_sim, obs, y_sim), "observe")
 
 
 _observe = jit(observe_window)

@@ -21,7 +21,7 @@ from ._boundary import require_x64
 from ._jit import jit
 from ._linalg import expm
 from ._model import Model
-from ._quadrature import delayed_samples, shift_samples, split_delay
+from ._quadrature import delayed_samples, edge_padded, record_bucket, shift_samples, split_delay
 from ._statespace import state_space
 from ._status import Status
 
@@ -81,24 +81,27 @@ def forced_terms(ss, cols, modes, delays, dt: float, T: int, rows=None):
     return drive, direct
 
 
-def simulate_status(model: Model, u, x0, dt: float):
+def simulate_status(model: Model, u, x0, dt: float, valid=None):
     """Batched-path simulation: returns (y (T,), x (T, n), status) and never raises.
 
     An overflowing (unstable) response is frozen at its last finite state and flagged
-    `Status.OVERFLOW` instead of turning into inf/NaN.
+    `Status.OVERFLOW` instead of turning into inf/NaN. `valid` (may be traced): only the first
+    `valid` samples count for that flag (`u` padded beyond them, see `simulate`).
     """
     u = jnp.asarray(u, dtype=jnp.float64).reshape(jnp.shape(u)[0], -1)
     ss, drive, direct = forced_response(model, u, dt)
     Phi = expm(ss.A * dt)
+    inside = jnp.arange(u.shape[0]) < (u.shape[0] if valid is None else valid)
 
-    def step(carry, dr):
-        x, bad = carry
+    def step(carry, d):
+        (x, bad), (dr, counts) = carry, d
         x_new = Phi @ x + dr
-        blown = bad | ~jnp.all(jnp.abs(x_new) < _BIG)
+        blown = bad | (counts & ~jnp.all(jnp.abs(x_new) < _BIG))
         x_new = jnp.where(blown, x, x_new)
         return (x_new, blown), x
 
-    (_, bad), xs = jax.lax.scan(step, (jnp.asarray(x0, dtype=jnp.float64), False), drive)
+    (_, bad), xs = jax.lax.scan(step, (jnp.asarray(x0, dtype=jnp.float64), False),
+                                (drive, inside))
     y = xs @ ss.C[0] + direct
     return y, xs, jnp.where(bad, Status.OVERFLOW, 0).astype(jnp.int32)
 
@@ -119,7 +122,7 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
         raise TypeError(f"simulate(): model must be a Model, got {type(model).__name__}")
     K = model.n_inputs
     u = _b.array("simulate", "u", u, ndim=(1, 2))
-    u = jnp.asarray(u, dtype=jnp.float64)
+    u = (jnp if _b.is_traced(u) else np).asarray(u, dtype=np.float64)  # NumPy: no program
     if u.ndim == 1:
         u = u[:, None]
     if u.shape[1] != K or u.shape[0] < 1:
@@ -133,12 +136,23 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
     if x0.shape != (model.n,):
         raise ValueError(f"simulate(): x0 must have shape ({model.n},), got {x0.shape}")
     dt = _b.number("simulate", "dt", dt, lo=0, lo_open=True, fix="give the sampling interval")
-    y, xs, status = _simulate(model.unlabelled(), u, x0, dt)
+    # a concrete u is padded to its record bucket: records of every length in it share one
+    # program; the response is causal, so the first T samples never see the padding
+    T = u.shape[0]
+    if _b.is_traced(u):
+        args = (u, x0, dt)
+    else:
+        args = (edge_padded(u, record_bucket(T) - T), x0, dt, np.int32(T))
+    y, xs, status = _simulate(model.unlabelled(), *args)
+    if _b.is_traced(y):
+        y, xs = y[:T], xs[:T]
+    else:
+        y, xs = (jax.device_put(np.asarray(v)[:T]) for v in (y, xs))  # host slice: no program
     if _b.is_traced(status) or _b.is_traced(y):
         # no eqx.error_if here: a program holding one is never written to the persistent
         # compilation cache; the overflow shows as NaN instead of a frozen response
         y = jnp.where(status != 0, jnp.nan, y)
-    elif int(status) != 0 or not bool(jnp.all(jnp.isfinite(y))):
+    elif int(status) != 0 or not np.all(np.isfinite(np.asarray(y))):
         raise ValueError(_overflow_message(model, u, x0))
     return (y, xs) if return_state else y
 

@@ -93,6 +93,35 @@ def test_identify_new_record_length_inside_a_bucket_compiles_nothing():
     assert float(model.J_rel) == pytest.approx(float(exact.J_rel), rel=1e-8)
 
 
+def test_simulate_new_record_length_inside_a_bucket_compiles_nothing():
+    """`simulate` pads a concrete input to its record bucket (1100 and 1200 samples: 1280) and
+    returns the first T samples; the response is causal, so they equal the unpadded program's
+    (the same recursion on the same values: equal to the last bit or to a few ulps if XLA
+    vectorises the two lengths differently; 1e-13 relative)."""
+    from mfmjax._simulate import simulate_status
+
+    model = mfmjax.Model.from_coefficients([1.0, 0.8, 1.0], [[1.0, 0.3]], delays=[0.23],
+                                           intersample=["foh"])
+    u = np.random.default_rng(0).standard_normal(1200)
+    mfmjax.simulate(model, u, dt=DT)
+    with compiles() as names:
+        y, x = mfmjax.simulate(model, u[:1100], dt=DT, return_state=True)
+    assert names == [], f"a new record length compiled {names}"
+    y_ref, x_ref, status = jax.jit(simulate_status, static_argnums=3)(model.unlabelled(),
+                                                                        u[:1100], jnp.zeros(2), DT)
+    assert y.shape == (1100,) and x.shape == (1100, 2) and int(status) == 0
+    np.testing.assert_allclose(np.asarray(y), np.asarray(y_ref), rtol=1e-13, atol=0)
+    np.testing.assert_allclose(np.asarray(x), np.asarray(x_ref), rtol=1e-13, atol=0)
+    # only the record counts for the overflow test: an unstable response (x' = x + 1) that
+    # passes the overflow bound at sample 1150, inside the padding of a 1100-sample record
+    from mfmjax._simulate import _BIG
+
+    unstable, dt = mfmjax.Model.from_coefficients([-1.0, 1.0], [[1.0]]), np.log(_BIG) / 1150
+    assert np.all(np.isfinite(np.asarray(mfmjax.simulate(unstable, np.ones(1100), dt=dt))))
+    with pytest.raises(ValueError, match="overflows float64 because the model is unstable"):
+        mfmjax.simulate(unstable, np.ones(1200), dt=dt)
+
+
 def test_search_new_settings_inside_a_bucket_compile_nothing(record):
     """A search over other N, M and h values (same grid sizes, same largest N + M, largest h in
     the same kernel bucket: 50..64 samples -> 64) and a new t0 and names reuses the compiled
