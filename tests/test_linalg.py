@@ -6,6 +6,11 @@ import scipy.linalg as sl
 
 from mfmjax import _linalg as L
 
+# compiled: eager, each operation of these unrolled kernels is a program of its own (the
+# batched and grad test below runs them under vmap and grad)
+solve, eigvalsh, expm, hurwitz = (jax.jit(f) for f in (L.solve, L.eigvalsh, L.expm, L.hurwitz))
+conditioning_eigvals = jax.jit(L.conditioning_eigvals)
+
 
 @pytest.mark.parametrize("n", [1, 3, 8, 25])
 def test_solve_eigvalsh_expm_match_lapack(n):
@@ -13,17 +18,17 @@ def test_solve_eigvalsh_expm_match_lapack(n):
     A, b = rng.normal(size=(n, n)), rng.normal(size=n)
     ref = np.linalg.solve(A, b)
     # backward-stable elimination: error ~ cond(A) * eps
-    assert np.max(np.abs(np.asarray(L.solve(A, b)) - ref)) <= 1e-13 * np.linalg.cond(A) * np.max(
+    assert np.max(np.abs(np.asarray(solve(A, b)) - ref)) <= 1e-13 * np.linalg.cond(A) * np.max(
         np.abs(ref))
     S = A @ A.T
     lam = np.linalg.eigvalsh(S)
-    assert np.max(np.abs(np.asarray(L.eigvalsh(S)) - lam)) <= 1e-13 * lam[-1]
+    assert np.max(np.abs(np.asarray(eigvalsh(S)) - lam)) <= 1e-13 * lam[-1]
     for scale in (1e-3, 1.0, 40.0):
         X = A * scale / n
         E = sl.expm(X)
         # each of the s squarings can double the relative rounding error: bound 1e-14 * 2^s
         s = max(0, int(np.ceil(np.log2(np.max(np.sum(np.abs(X), axis=1)) / 0.5))))
-        assert np.max(np.abs(np.asarray(L.expm(X)) - E)) <= 1e-14 * 2**s * np.max(np.abs(E))
+        assert np.max(np.abs(np.asarray(expm(X)) - E)) <= 1e-14 * 2**s * np.max(np.abs(E))
 
 
 def test_batched_and_grad():
@@ -48,7 +53,7 @@ def test_batched_and_grad():
           [1, 2, 3, 4, 1, 0, 0], [-1, 0, 1], [6, 11, 6, 1, 0]])
 def test_hurwitz_matches_roots(a):
     roots = np.roots(np.trim_zeros(np.asarray(a, float)[::-1], "f"))
-    assert bool(L.hurwitz(jnp.asarray(a, dtype=float))) == bool(np.all(roots.real < 0))
+    assert bool(hurwitz(jnp.asarray(a, dtype=float))) == bool(np.all(roots.real < 0))
 
 
 @pytest.mark.parametrize("n", [1, 2, 5, 14])
@@ -62,7 +67,7 @@ def test_conditioning_eigvals_relative_accuracy(n):
     lam[0] = 0.0 if n > 2 else lam[0]
     S = (Q * lam) @ Q.T
     S = (S + S.T) / 2
-    got = np.asarray(L.conditioning_eigvals(S, jnp.arange(n)))
+    got = np.asarray(conditioning_eigvals(S, jnp.arange(n)))
     ref = np.linalg.eigvalsh(S)
     floor = np.max(np.sum(np.abs(S), axis=1)) * np.finfo(float).eps ** 2
     live = ref > 1e3 * n * np.finfo(float).eps * ref[-1]

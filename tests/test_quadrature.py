@@ -16,13 +16,18 @@ CASES = [  # N, M, h, dt, delay: fractional h and delay on purpose
 ]
 
 
+# one compiled program per (i, dt, rule, length) instead of dozens of eager operations each
+# (the eager path is checked by the tests below)
+_weights = jax.jit(kernel_weights, static_argnums=(1, 2, 3, 5))
+
+
 @pytest.mark.parametrize("rule", ["zoh", "foh", "cubic"])
 @pytest.mark.parametrize("N,M,h,dt,tau", CASES)
 def test_weights_equal_exact_reference(rule, N, M, h, dt, tau):
     # the reference is exact rational arithmetic: the only error is float64 rounding, 1e-12
     L = kernel_length(h + tau, dt)
     for i in range(3):
-        got = np.asarray(kernel_weights(ModulatingFunction(N, M, h), i, dt, rule, tau, L))
+        got = np.asarray(_weights(ModulatingFunction(N, M, h), i, dt, rule, tau, L))
         ref = R.kernel_weights(N, M, h, i, dt, rule, tau, L)
         assert np.max(np.abs(got - ref)) <= 1e-12 * np.max(np.abs(ref))
 
@@ -74,14 +79,16 @@ def test_jit_vmap_grad_in_h_and_delay():
         return f(h, tau) @ x
 
     # (tau + h)/dt = 15.8 stays inside one stencil choice of the cubic rule under +-eps
+    # (grad and the differences compiled: eager, each operation of the grad is a program)
+    g_jit = jax.jit(g)
     for argnum in (0, 1):
         args = [1.37, 0.21]
-        grad = jax.grad(g, argnums=argnum)(*args)
+        grad = jax.jit(jax.grad(g, argnums=argnum))(*args)
         eps = 1e-6
         hi, lo = list(args), list(args)
         hi[argnum] += eps
         lo[argnum] -= eps
-        fd = (g(*hi) - g(*lo)) / (2 * eps)
+        fd = (g_jit(*hi) - g_jit(*lo)) / (2 * eps)
         assert abs(grad - fd) <= 1e-6 * abs(fd) + 1e-12
 
 

@@ -122,6 +122,34 @@ def test_simulate_new_record_length_inside_a_bucket_compiles_nothing():
         mfmjax.simulate(unstable, np.ones(1200), dt=dt)
 
 
+def test_observe_new_record_and_window_lengths_inside_a_bucket_compile_nothing(record):
+    """`observe` pads the window to its record bucket and the record to hold it: records of
+    1200 and 1100 samples, and windows of 901 and 921 samples (bucket 1024) with or without an
+    observer window, share one program. Only the window's samples count: x0, the final state,
+    E and y_sim equal the unpadded program's (`observe_window` at the window's own length) to
+    the rounding of the Gramian's sums (equal shapes up to the padding: 1e-10 relative)."""
+    from mfmjax._observers import observe_window
+
+    model = mfmjax.identify(record, ST, ModulatingFunction(4, 5, 2.6))
+    short = Signals(np.asarray(record.y)[:1100], np.asarray(record.u)[:1100], dt=DT,
+                    intersample=record.intersample)
+    mfmjax.observe(model, record)
+    mfmjax.observe(model, record, (5.0, 50.0))
+    with compiles() as names:
+        runs = [mfmjax.observe(model, short), mfmjax.observe(model, short, (7.0, 53.0)),
+                mfmjax.observe(model, short, (7.0, 53.0), observer_window=10.0)]
+    assert names == [], f"new record and window lengths compiled {names}"
+    for obs, (start, length, ob) in zip(runs, [(0, 1100, None), (140, 921, None),
+                                               (140, 921, 201)]):
+        ref = jax.jit(observe_window, static_argnums=(3, 5, 6))(
+            model.unlabelled(), short.y, short.u, DT, start, length, ob)
+        assert obs.y_sim.shape == (length,) and int(obs.status) == int(ref.status) == 0
+        for got, want in ((obs.x_initial, ref.x_initial), (obs.x_final, ref.x_final),
+                          (obs.E, ref.E), (obs.y_sim, ref.y_sim)):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-10,
+                                       atol=1e-10 * np.max(np.abs(np.asarray(want))))
+
+
 def test_search_new_settings_inside_a_bucket_compile_nothing(record):
     """A search over other N, M and h values (same grid sizes, same largest N + M, largest h in
     the same kernel bucket: 50..64 samples -> 64) and a new t0 and names reuses the compiled

@@ -13,9 +13,9 @@ import numpy as np
 
 from .._identify import FEEDTHROUGH_STEPS
 from .._jit import jit
+from .._quadrature import edge_padded
 from .._signals import Signals
 from .._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
-from .._quadrature import edge_padded
 from ._grid import ChunkStatic, Plan
 from ._moments import moment_gram
 from ._result import collect
