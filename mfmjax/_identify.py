@@ -19,6 +19,7 @@ from ._gram import (
 from ._jit import jit
 from ._model import Model
 from ._modulating import ModulatingFunction, as_values
+from ._pytree import replace_fields
 from ._quadrature import edge_padded, record_bucket
 from ._signals import Signals
 from ._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
@@ -124,8 +125,10 @@ def bucketed(signals: Signals):
         return signals, None
     T = signals.n_samples
     pad = record_bucket(T) - T
-    y, u = (edge_padded(np.asarray(x), pad) for x in (signals.y, signals.u))  # NumPy: no program
-    return eqx.tree_at(lambda s: (s.y, s.u), signals, (y, u)), np.int32(T)
+    if pad:
+        y, u = (edge_padded(np.asarray(x), pad) for x in (signals.y, signals.u))  # no program
+        signals = replace_fields(signals, y=y, u=u)
+    return signals, np.int32(T)
 
 
 def identify(
