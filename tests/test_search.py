@@ -165,13 +165,39 @@ print(json.dumps(res.to_dict()))
 
 
 def test_equation_error_only_mode(noisy):
-    kw = dict(n=(1, 2, 3), N=(4,), M=(4,), h=(1.5,), m=[(0, 1), (0,)])
+    # two chunks, so that both run at the default compile options (a one-chunk J-only grid is
+    # compiled at level 0: rounding-equal, test_one_chunk_J_search_is_compiled_for_compile_time)
+    kw = dict(n=(1, 2, 3), N=(4,), M=(4,), h=(1.5, 1.7), m=[(0, 1), (0,)], chunk_size=1)
     full = mfmjax.search(noisy, score="J", **kw)
     fast = mfmjax.search(noisy, score="J", simulate=False, **kw)
     assert np.array_equal(full.columns["theta"], fast.columns["theta"])
     assert np.all(np.isnan(fast.columns["E"]))
     with pytest.raises(ValueError, match="needs simulate=True"):
         mfmjax.search(noisy, score="E", simulate=False, **kw)
+
+
+def test_one_chunk_J_search_is_compiled_for_compile_time(noisy, monkeypatch):
+    """`search` runs a one-chunk, J-only grid through the program compiled at XLA's backend
+    level 0 (`RUN_ONCE_OPTIONS`: it runs once) and a grid of several chunks through the default
+    one; both give the same candidates to rounding (the same arithmetic, other instruction
+    selection: 1e-12 relative norm-wise on theta and J, equal rankings)."""
+    from mfmjax._search import _engine
+
+    used = []
+    for name in ("chunk_jit", "chunk_jit_once"):
+        fn = getattr(_engine, name)
+        monkeypatch.setattr(_engine, name, lambda *a, _fn=fn, _n=name: used.append(_n) or _fn(*a))
+    kw = dict(n=(1, 2, 3), N=(4,), M=(4, 5), h=(1.5, 1.7), m=[(0, 1), (0,)], score="J",
+              simulate=False)
+    once = mfmjax.search(noisy, **kw)
+    assert used == ["chunk_jit_once"]
+    chunked = mfmjax.search(noisy, chunk_size=1, **kw)  # two chunks: the default program
+    assert used[1:] == ["chunk_jit", "chunk_jit"]
+    for key in ("theta", "J"):
+        a, b = np.asarray(once.columns[key]), np.asarray(chunked.columns[key])
+        assert np.max(np.abs(a - b)) <= 1e-12 * np.max(np.abs(b)), key
+    for key in ("n", "m", "N", "M", "h"):  # the same ranking
+        np.testing.assert_array_equal(once.columns[key], chunked.columns[key])
 
 
 def test_two_process_loopback_equals_single(tmp_path):

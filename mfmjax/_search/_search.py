@@ -64,4 +64,4 @@ def search(
     plan = plan_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score,
                  validate=validate, observer_window=observer_window, eta=eta,
                  chunk_size=chunk_size, simulate=simulate, identify=identify)
-    return run_plan(plan, signals, progress)
+    return run_plan(plan, signals, progress, once=True)
