@@ -163,8 +163,8 @@ def identify(
     kernel length is bucketed (`kernel_bucket`), so a new setting whose h + delays fit the
     current bucket reuses the program; the record is padded to its `record_bucket` and the
     padding masked exactly, so a new record length inside a bucket reuses it too; t0 and the
-    signal names never enter it. A traced h (or
-    delay) beyond its static bound sets `Status.OUT_OF_BOUNDS` instead of truncating.
+    signal names never enter it. A traced h (or delay) beyond its static bound sets
+    `Status.OUT_OF_BOUNDS` instead of truncating.
     """
     from ._boundary import check_identify
 
