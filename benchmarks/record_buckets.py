@@ -1,5 +1,5 @@
-"""Record-length buckets for `identify`, `simulate` and `observe`: what a new record length
-costs, and what the padding costs warm. One process; the unpadded programs (the behaviour
+"""Record-length buckets for `identify`, `simulate`, `observe` and `output_error`: what a new
+record length costs, and what the padding costs warm. One process; the unpadded programs (the behaviour
 before the buckets) are called through the same public functions with the padding switched
 off, alternated with the padded ones.
 
@@ -24,6 +24,7 @@ import numpy as np
 import mfmjax
 import mfmjax._identify as _identify
 import mfmjax._observers as _observers
+import mfmjax._output_error as _output_error
 import mfmjax._simulate as _simulate
 from mfmjax import ModulatingFunction, Signals, Structure
 from mfmjax.datasets import simulated_experiment, third_order_two_input
@@ -33,7 +34,7 @@ ST = Structure(3, (1, 0))
 
 def _unpadded(on: bool):
     """Switch the padding off (`record_bucket` returns the length itself) or back on."""
-    for mod in (_identify, _observers, _simulate):
+    for mod in (_identify, _observers, _simulate, _output_error):
         mod.record_bucket = (lambda n: n) if on else _REAL
 
 
@@ -63,6 +64,7 @@ def main():
         "identify": lambda s: mfmjax.identify(s, ST, mf).theta,
         "simulate": lambda s: mfmjax.simulate(model, s.u, dt=0.01),
         "observe": lambda s: mfmjax.observe(model, s).E,
+        "output_error": lambda s: mfmjax.output_error(s, model).E,
     }
     res = {"new_length": {}, "warm_ms": {}}
     for name, f in calls.items():
@@ -91,9 +93,9 @@ def main():
     res["warm_ms"]["identify"] = {m: 1e3 * float(np.median(v)) for m, v in warm.items()}
     print("a new record length inside the bucket (2900 after 3000 samples), median of "
           f"{args.repeats}: seconds")
-    print(f"{'':>10} {'padded':>10} {'unpadded':>10} {'ratio':>8}")
+    print(f"{'':>12} {'padded':>10} {'unpadded':>10} {'ratio':>8}")
     for name, row in res["new_length"].items():
-        print(f"{name:>10} {row['padded']:>10.4f} {row['unpadded']:>10.4f} "
+        print(f"{name:>12} {row['padded']:>10.4f} {row['unpadded']:>10.4f} "
               f"{row['unpadded'] / row['padded']:>8.1f}")
     w = res["warm_ms"]["identify"]
     print(f"warm identify at new settings, 3000 samples: padded {w['padded']:.3f} ms, "

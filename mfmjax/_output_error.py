@@ -21,6 +21,8 @@ from ._jit import device, jit
 from ._linalg import expm
 from ._model import Model
 from ._optim import USABLE
+from ._pytree import replace_fields
+from ._quadrature import edge_padded, record_bucket
 from ._signals import Signals
 
 
@@ -117,7 +119,8 @@ class _Residual(eqx.Module):
     x_scale: jax.Array
     free: jax.Array  # (size,) the free entries of z
     start: jax.Array  # first sample of the window (a value: a new window is not a new program)
-    length: int = eqx.field(static=True)
+    valid: jax.Array  # the window's own length (a value); residuals beyond it are zero
+    length: int = eqx.field(static=True)  # the window's record bucket (`record_bucket`)
 
     @property
     def size(self) -> int:
@@ -136,7 +139,7 @@ class _Residual(eqx.Module):
             return Phi @ x + d, ss.C[0] @ x
 
         _, ys = jax.lax.scan(step, self.x_init + self.x_scale * z[p:], drive)
-        return self.y - (ys + direct)
+        return jnp.where(jnp.arange(self.length) < self.valid, self.y - (ys + direct), 0.0)
 
 
 def output_error(
@@ -192,21 +195,29 @@ def _prepare(signals: Signals, model: Model, window, n_max: int | None = None):
     k0, length = validation_window(signals, window, None, model.n, "output_error", "window")[:2]
     n_max, m_max = (model.n, max(model.m, default=0)) if n_max is None else (n_max, n_max)
     c = padded.padded_model(model, n_max, m_max)
+    # the window padded to its record bucket and the record to hold it (repeating the last
+    # sample; only the window's own samples count): windows and records of every length in a
+    # bucket share the programs
+    bound = record_bucket(length)
+    pad = record_bucket(max(signals.n_samples, k0 + bound)) - signals.n_samples
+    sig = replace_fields(signals.unlabelled(), **{  # host glue in NumPy: no eager programs
+        key: edge_padded(np.asarray(getattr(signals, key)), pad) for key in ("y", "u")})
     # the zero-padded observer: one program for every structure of this padded shape
-    obs = checked(padded.observe_candidate(signals.unlabelled(), c, np.int32(k0), length, None),
-                  "output_error")
-    yv = np.asarray(signals.y)[k0 : k0 + length]  # host glue in NumPy: no eager programs
+    obs = checked(padded.observe_candidate(sig, c, np.int32(k0), bound, np.int32(length),
+                                           np.int32(length)), "output_error")
+    yv = sig.y[k0 : k0 + bound]
+    yw = yv[:length]
     names, theta0 = free_parameters(model)
     idx = padded.indices(model, n_max, m_max + 1)
     p = n_max + model.n_inputs * (m_max + 1) + int(model.has_offset)
     scale = np.maximum(np.abs(theta0), 1e-8 * max(np.max(np.abs(theta0)), 1e-300))
     x_init = np.asarray(obs.x_initial)  # zero beyond n
-    x_scale = np.maximum(np.abs(x_init[: model.n]), 1e-6 * float(np.std(yv)) + 1e-300)
+    x_scale = np.maximum(np.abs(x_init[: model.n]), 1e-6 * float(np.std(yw)) + 1e-300)
     free = np.concatenate([padded.free(c, model.has_offset), np.arange(n_max) < model.n])
     th0, sc, xs = np.zeros(p), np.ones(p), np.ones(n_max)
     th0[idx], sc[idx], xs[: model.n] = theta0, scale, x_scale
-    residual = _Residual(*jax.device_put((c, signals.unlabelled(), yv, th0, sc, x_init, xs,
-                                          free, np.int32(k0))), length)
+    residual = _Residual(*jax.device_put((c, sig, yv, th0, sc, x_init, xs, free, np.int32(k0),
+                                          np.int32(length))), bound)
     return residual, (original, model, was_unstable, names, theta0, scale, x_scale,
                       x_init[: model.n], idx)
 
@@ -217,7 +228,7 @@ def _finish(residual, meta, solved) -> OutputErrorFit:
     Gauss-Newton covariance there; warns when not converged."""
     original, model, was_unstable, names, theta0, scale, x_scale, x_init, idx = meta
     z, result, n_steps, r0, J0, r, J = jax.device_get(solved)
-    p_theta, length, dt = theta0.size, residual.length, residual.signals.dt
+    p_theta, length, dt = theta0.size, int(residual.valid), residual.signals.dt
     live = np.concatenate([idx, residual.theta0.shape[0] + np.arange(model.n)])
     code = LM_CODES[int(result)]
     E0 = float(np.sum(r0**2)) * dt

@@ -119,7 +119,7 @@ def observe_padded(sig: Signals, c, start, length: int, ob_length, valid=None):
 
 
 @jit
-def observe_candidate(sig: Signals, c, start, length: int, ob_length: int):
+def observe_candidate(sig: Signals, c, start, length: int, ob_length: int, valid=None):
     """`observe_padded` compiled: `estimate`'s hold-out observer and output error's start, one
     program for every order."""
-    return observe_padded(sig, c, start, length, ob_length)
+    return observe_padded(sig, c, start, length, ob_length, valid)

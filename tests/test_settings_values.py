@@ -251,6 +251,35 @@ def test_output_error_from_20_different_starts_compiles_once(noisy):
     assert all(np.isfinite(f.E) and f.E <= f.E_start for f in fits)
 
 
+def test_output_error_new_record_length_inside_a_bucket_compiles_nothing(noisy, monkeypatch):
+    """`output_error` pads its window to the window's record bucket and the record to hold it
+    (600 and 560 samples: 640); only the window's residuals count. A 560-sample record after
+    the 600-sample one compiles nothing, and its fit is the unpadded program's (the padding
+    switched off): the same estimate, both converged. Each stops within its tolerance (rtol
+    1e-10 on steps scaled by |theta|; the rounding of longer sums can change the step count):
+    theta within 1e-10 |theta| <= 1e-7 standard errors here (|theta| / se < 1e3), 1e-6 with a
+    margin; E is quadratic at the minimum, so equal to rounding (1e-12); the standard errors
+    move with theta (1e-8)."""
+    import mfmjax._output_error as oe
+    from mfmjax._quadrature import record_bucket
+
+    assert record_bucket(600) == record_bucket(560) == 640
+    short = Signals(np.asarray(noisy.y)[:560], np.asarray(noisy.u)[:560], dt=DT,
+                    intersample=noisy.intersample)
+    start = mfmjax.identify(noisy, ST, ModulatingFunction(4, 5, 2.6))
+    mfmjax.output_error(noisy, start)
+    with compiles() as names:
+        fit = mfmjax.output_error(short, start)
+    assert names == [], f"a new record length compiled {names}"
+    monkeypatch.setattr(oe, "record_bucket", lambda n: n)
+    ref = mfmjax.output_error(short, start)
+    assert fit.converged and ref.converged
+    assert np.all(np.abs(ref.theta) < 1e3 * ref.std_errors)
+    assert np.all(np.abs(fit.theta - ref.theta) <= 1e-6 * ref.std_errors)
+    assert fit.E == pytest.approx(ref.E, rel=1e-12)
+    np.testing.assert_allclose(fit.std_errors, ref.std_errors, rtol=1e-8)
+
+
 def test_scores_new_settings_compile_nothing(noisy):
     mfmjax.scores(noisy, ST, h=2.6, N=4, M=5, h_max=3.15)
     with compiles() as names:
