@@ -1,7 +1,7 @@
-"""Record-length buckets for `identify`, `simulate`, `observe` and `output_error`: what a new
-record length costs, and what the padding costs warm. One process; the unpadded programs (the behaviour
-before the buckets) are called through the same public functions with the padding switched
-off, alternated with the padded ones.
+"""Record-length buckets for `identify`, `simulate`, `observe`, `output_error` and `srivc`:
+what a new record length costs, and what the padding costs warm. One process; the unpadded
+programs (the behaviour before the buckets) are called through the same public functions
+with the padding switched off, alternated with the padded ones.
 
 - new length: a record of 2900 samples after one of 3000 (both pad to 3072): the padded call
   reuses the compiled program; the unpadded one compiles a program for 2900 samples.
@@ -26,6 +26,7 @@ import mfmjax._identify as _identify
 import mfmjax._observers as _observers
 import mfmjax._output_error as _output_error
 import mfmjax._simulate as _simulate
+import mfmjax._srivc as _srivc
 from mfmjax import ModulatingFunction, Signals, Structure
 from mfmjax.datasets import simulated_experiment, third_order_two_input
 
@@ -34,7 +35,7 @@ ST = Structure(3, (1, 0))
 
 def _unpadded(on: bool):
     """Switch the padding off (`record_bucket` returns the length itself) or back on."""
-    for mod in (_identify, _observers, _simulate, _output_error):
+    for mod in (_identify, _observers, _simulate, _output_error, _srivc):
         mod.record_bucket = (lambda n: n) if on else _REAL
 
 
@@ -65,6 +66,7 @@ def main():
         "simulate": lambda s: mfmjax.simulate(model, s.u, dt=0.01),
         "observe": lambda s: mfmjax.observe(model, s).E,
         "output_error": lambda s: mfmjax.output_error(s, model).E,
+        "srivc": lambda s: mfmjax.srivc(s, model).E,
     }
     res = {"new_length": {}, "warm_ms": {}}
     for name, f in calls.items():

@@ -280,6 +280,29 @@ def test_output_error_new_record_length_inside_a_bucket_compiles_nothing(noisy, 
     np.testing.assert_allclose(fit.std_errors, ref.std_errors, rtol=1e-8)
 
 
+def test_srivc_new_record_length_inside_a_bucket_compiles_nothing(noisy, monkeypatch):
+    """`srivc` pads a concrete record to its bucket (600 and 560 samples: 640); only the
+    record's own samples enter the IV system, E and sigma2. A 560-sample record after the
+    600-sample one compiles nothing, and its fit equals the unpadded program's (the padding
+    switched off): the same iterations on the same samples, the filters causal, only the
+    lengths of the sums differ, so theta to 1e-10 relative norm-wise, E and sigma2 to 1e-12."""
+    import mfmjax._srivc as sr
+
+    short = Signals(np.asarray(noisy.y)[:560], np.asarray(noisy.u)[:560], dt=DT,
+                    intersample=noisy.intersample)
+    start = mfmjax.identify(noisy, ST, ModulatingFunction(4, 5, 2.6))
+    mfmjax.srivc(noisy, start)
+    with compiles() as names:
+        fit = mfmjax.srivc(short, start)
+    assert names == [], f"a new record length compiled {names}"
+    monkeypatch.setattr(sr, "record_bucket", lambda n: n)
+    ref = mfmjax.srivc(short, start)
+    assert int(fit.status) == int(ref.status) == 0 and fit.iterations == ref.iterations
+    assert np.max(np.abs(fit.theta - ref.theta)) <= 1e-10 * np.max(np.abs(ref.theta))
+    assert float(fit.E) == pytest.approx(float(ref.E), rel=1e-12)
+    assert float(fit.sigma2) == pytest.approx(float(ref.sigma2), rel=1e-12)
+
+
 def test_scores_new_settings_compile_nothing(noisy):
     mfmjax.scores(noisy, ST, h=2.6, N=4, M=5, h_max=3.15)
     with compiles() as names:
