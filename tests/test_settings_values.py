@@ -25,6 +25,29 @@ def record():
     return simulated_experiment(third_order_two_input(), dt=DT, n_samples=1200, seed=3)
 
 
+def _head(sig: Signals, T: int) -> Signals:
+    """The first `T` samples of `sig` as a record of their own (a new record length)."""
+    return Signals(np.asarray(sig.y)[:T], np.asarray(sig.u)[:T], dt=DT,
+                   intersample=sig.intersample)
+
+
+def _padded_and_unpadded(fit, module, noisy, monkeypatch):
+    """`fit(record, start)` on the first 560 samples of `noisy` after a fit on all 600 (one
+    bucket: 640): asserts that it compiles nothing, then returns it with the same fit with
+    `module`'s padding switched off (the program of the record's own length)."""
+    from mfmjax._quadrature import record_bucket
+
+    assert record_bucket(600) == record_bucket(560) == 640
+    short = _head(noisy, 560)
+    start = mfmjax.identify(noisy, ST, ModulatingFunction(4, 5, 2.6))
+    fit(noisy, start)
+    with compiles() as names:
+        padded = fit(short, start)
+    assert names == [], f"a new record length compiled {names}"
+    monkeypatch.setattr(module, "record_bucket", lambda n: n)
+    return padded, fit(short, start)
+
+
 def _settings(count):
     """`count` distinct (N, M, h) whose supports need 50..64 samples: one kernel bucket (64)."""
     rng = np.random.default_rng(0)
@@ -79,8 +102,7 @@ def test_identify_new_record_length_inside_a_bucket_compiles_nothing():
     mf = ModulatingFunction(4, 5, 2.6)
     long = simulated_experiment(third_order_two_input(), dt=DT, n_samples=1200, seed=6,
                                 noise_std=0.02)
-    short = Signals(np.asarray(long.y)[:1100], np.asarray(long.u)[:1100], dt=DT,
-                    intersample=long.intersample)
+    short = _head(long, 1100)
     mfmjax.identify(long, ST, mf)
     with compiles() as names:
         model = mfmjax.identify(short, ST, mf)
@@ -131,8 +153,7 @@ def test_observe_new_record_and_window_lengths_inside_a_bucket_compile_nothing(r
     from mfmjax._observers import observe_window
 
     model = mfmjax.identify(record, ST, ModulatingFunction(4, 5, 2.6))
-    short = Signals(np.asarray(record.y)[:1100], np.asarray(record.u)[:1100], dt=DT,
-                    intersample=record.intersample)
+    short = _head(record, 1100)
     mfmjax.observe(model, record)
     mfmjax.observe(model, record, (5.0, 50.0))
     with compiles() as names:
@@ -176,8 +197,7 @@ def test_search_new_record_length_inside_a_bucket_compiles_nothing():
     assert record_bucket(1100) == record_bucket(1200) == 1280
     long = simulated_experiment(third_order_two_input(), dt=DT, n_samples=1200, seed=6,
                                 noise_std=0.02)
-    short = Signals(np.asarray(long.y)[:1100], np.asarray(long.u)[:1100], dt=DT,
-                    intersample=long.intersample)
+    short = _head(long, 1100)
     grid = dict(n=(1, 2, 3), m=[(0, 1), (0, 1)], N=(4, 5), M=(4, 5), h=(2.5, 3.1),
                 observer_window=10.0)
     mfmjax.search(long, **grid)
@@ -261,18 +281,8 @@ def test_output_error_new_record_length_inside_a_bucket_compiles_nothing(noisy, 
     margin; E is quadratic at the minimum, so equal to rounding (1e-12); the standard errors
     move with theta (1e-8)."""
     import mfmjax._output_error as oe
-    from mfmjax._quadrature import record_bucket
 
-    assert record_bucket(600) == record_bucket(560) == 640
-    short = Signals(np.asarray(noisy.y)[:560], np.asarray(noisy.u)[:560], dt=DT,
-                    intersample=noisy.intersample)
-    start = mfmjax.identify(noisy, ST, ModulatingFunction(4, 5, 2.6))
-    mfmjax.output_error(noisy, start)
-    with compiles() as names:
-        fit = mfmjax.output_error(short, start)
-    assert names == [], f"a new record length compiled {names}"
-    monkeypatch.setattr(oe, "record_bucket", lambda n: n)
-    ref = mfmjax.output_error(short, start)
+    fit, ref = _padded_and_unpadded(mfmjax.output_error, oe, noisy, monkeypatch)
     assert fit.converged and ref.converged
     assert np.all(np.abs(ref.theta) < 1e3 * ref.std_errors)
     assert np.all(np.abs(fit.theta - ref.theta) <= 1e-6 * ref.std_errors)
@@ -288,15 +298,7 @@ def test_srivc_new_record_length_inside_a_bucket_compiles_nothing(noisy, monkeyp
     lengths of the sums differ, so theta to 1e-10 relative norm-wise, E and sigma2 to 1e-12."""
     import mfmjax._srivc as sr
 
-    short = Signals(np.asarray(noisy.y)[:560], np.asarray(noisy.u)[:560], dt=DT,
-                    intersample=noisy.intersample)
-    start = mfmjax.identify(noisy, ST, ModulatingFunction(4, 5, 2.6))
-    mfmjax.srivc(noisy, start)
-    with compiles() as names:
-        fit = mfmjax.srivc(short, start)
-    assert names == [], f"a new record length compiled {names}"
-    monkeypatch.setattr(sr, "record_bucket", lambda n: n)
-    ref = mfmjax.srivc(short, start)
+    fit, ref = _padded_and_unpadded(mfmjax.srivc, sr, noisy, monkeypatch)
     assert int(fit.status) == int(ref.status) == 0 and fit.iterations == ref.iterations
     assert np.max(np.abs(fit.theta - ref.theta)) <= 1e-10 * np.max(np.abs(ref.theta))
     assert float(fit.E) == pytest.approx(float(ref.E), rel=1e-12)
