@@ -5,6 +5,9 @@ program (`lax.map`: each record runs to its own convergence, memory of one recor
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import equinox as eqx
 import jax
 import numpy as np
@@ -28,11 +31,13 @@ def unstack(tree) -> list:
 
 
 BATCH = 8  # pairs per mapped call: a batch runs in chunks of BATCH and single pairs
+WORKERS = min(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+              else os.cpu_count() or 1, 8)  # threads for the chunks (one per core)
 
 
-def groups(trees) -> list[list[int]]:
-    """Indices of `trees` grouped by pytree structure (static fields included) and leaf shapes,
-    each group cut
+def groups(trees) -> list[tuple[object, list[int]]]:
+    """(group key, indices) of `trees` grouped by pytree structure (static fields included) and
+    leaf shapes, each group cut
     into chunks of `BATCH` and single pairs: a batch's group sizes vary with the data (how
     many records chose a structure) and each size would be a new program; with two sizes a
     structure compiles at most two."""
@@ -41,9 +46,10 @@ def groups(trees) -> list[list[int]]:
         shapes = tuple(np.shape(x) for x in jax.tree.leaves(t))  # padded models: one treedef
         out.setdefault((jax.tree.structure(t), shapes), []).append(i)
     chunks = []
-    for idx in out.values():
+    for key, idx in out.items():
         full = len(idx) // BATCH * BATCH
-        chunks += [idx[c : c + BATCH] for c in range(0, full, BATCH)] + [[i] for i in idx[full:]]
+        chunks += [(key, idx[c : c + BATCH]) for c in range(0, full, BATCH)]
+        chunks += [(key, [i]) for i in idx[full:]]
     return chunks
 
 
@@ -58,24 +64,44 @@ def _mapped(fn, kw, sig, ys, us, models):
 
 def map_pairs(fn, records, models, **kw) -> list:
     """`fn(records[i], models[i], **kw)` for every pair: each chunk of `BATCH` pairs of one
-    pytree structure and shape in one compiled call, a single pair by `fn` itself (the program a direct
-    call uses). `records`: `Signals` of one layout; `kw` are static (hashable). The models'
-    labels and modulating functions are dropped (`fn` does not use them); other pytrees (e.g.
-    the search's padded candidates) pass as they are. An entry is None
-    where `fn` raised ValueError (e.g. an overflowing simulation in eager mode)."""
+    pytree structure and shape in one compiled call, a single pair by `fn` itself (the program
+    a direct call uses). `records`: `Signals` of one layout; `kw` are static (hashable). The
+    models' labels and modulating functions are dropped (`fn` does not use them); other
+    pytrees (e.g. the search's padded candidates) pass as they are. An entry is None where
+    `fn` raised ValueError (e.g. an overflowing simulation in eager mode).
+    Chunks run on threads (`in_parallel`)."""
     models = [replace_fields(m.unlabelled(), mf=None) if hasattr(m, "unlabelled") else m
               for m in models]
     out = [None] * len(models)
-    for idx in groups(models):
+
+    def run(idx):
         try:
             if len(idx) == 1:
-                out[idx[0]] = fn(records[idx[0]], models[idx[0]], **kw)
-                continue
+                return [(idx[0], fn(records[idx[0]], models[idx[0]], **kw))]
             sig = records[idx[0]].unlabelled()
             res = _mapped(fn, kw, sig, *stack([(records[i].y, records[i].u) for i in idx]),
                           stack([models[i] for i in idx]))
+            return list(zip(idx, unstack(res)))
         except ValueError:
-            continue
-        for i, r in zip(idx, unstack(res)):
+            return []
+
+    for pairs in in_parallel(run, groups(models)):
+        for i, r in pairs:
             out[i] = r
     return out
+
+
+def in_parallel(run, chunks) -> list:
+    """[run(idx) for (key, idx) in chunks] (`groups`' chunks): the first chunk of each program
+    (group key and size) alone, so that it compiles once; the others on `WORKERS` threads, one
+    per core (a compiled call releases the GIL; XLA:CPU runs a call's sequential loops on one
+    core). One result per chunk, the first chunks of each program first."""
+    first, rest, seen = [], [], set()
+    for key, idx in chunks:
+        (rest if (key, len(idx)) in seen else first).append(idx)
+        seen.add((key, len(idx)))
+    done = [run(idx) for idx in first]
+    if rest:
+        with ThreadPoolExecutor(max_workers=min(WORKERS, len(rest))) as pool:
+            done += pool.map(run, rest)
+    return done

@@ -8,6 +8,8 @@ import platform
 
 import jax
 
+from . import _executables
+
 DEFAULT_MAX_SIZE_BYTES = 1 << 30  # 1 GiB; a full test run writes about 0.2 GiB
 _OPT_OUT = "MFMJAX_NO_COMPILE_CACHE"
 _ENV_DIR = "JAX_COMPILATION_CACHE_DIR"
@@ -66,7 +68,8 @@ def _prune(path: str, max_size_bytes: int) -> None:
 
 
 def enable_compile_cache(
-    path: str | os.PathLike | None = None, *, max_size_bytes: int = DEFAULT_MAX_SIZE_BYTES
+    path: str | os.PathLike | None = None, *, max_size_bytes: int = DEFAULT_MAX_SIZE_BYTES,
+    executables: bool = True,
 ) -> str | None:
     r"""Turn on JAX's persistent compilation cache, so a new process skips compilation.
 
@@ -83,6 +86,9 @@ def enable_compile_cache(
       default `$XDG_CACHE_HOME` (or `~/.cache`)`/mfmjax/jax-<jax>-<jaxlib>-<cpu id>`.
     - `max_size_bytes`: size cap (default 1 GiB). The oldest entries beyond it are deleted
       now (each call, so each CLI start); a long process may exceed it until the next call.
+    - `executables`: also store mfmjax's own programs as whole executables in the same folder
+      (`mfmjax-exe-*-cache`, see `mfmjax/_executables.py`), so a new process loads them without
+      tracing or lowering them (default True; False: JAX's cache alone).
 
     **Returns:** the directory used, or None when `MFMJAX_NO_COMPILE_CACHE=1` is set (then
     nothing is changed).
@@ -118,4 +124,5 @@ def enable_compile_cache(
     jax.config.update("jax_compilation_cache_max_size", -1)
     if previous and os.path.abspath(previous) != directory:
         cc.reset_cache()  # JAX opens the directory once per process; reopen at the new one
+    _executables.enable(directory if executables else None)
     return directory

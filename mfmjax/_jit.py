@@ -9,6 +9,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from . import _executables
+
 # XLA:CPU's new fusion emitters (on by default in jaxlib 0.10) took 1.3-2.1x the compile time
 # on this library's programs (many small fusions); with them off, warm calls ran 0.68-0.96x,
 # except `simulate` at 1.24x (0.3 ms) (`python benchmarks/compile_options.py`).
@@ -59,9 +61,15 @@ def _tuned(make, fun, jitkwargs, options=None):
         return plain
     tuned = make(fun, compiler_options=dict(options), **jitkwargs)
 
+    filtered = make is eqx.filter_jit
+
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        return (tuned if _top_level() else plain)(*args, **kwargs)
+        if not _top_level():
+            return plain(*args, **kwargs)
+        if _executables.active():  # stored executables (`_executables`)
+            return _executables.call(tuned, fun, options, args, kwargs, filtered=filtered)
+        return tuned(*args, **kwargs)
 
     call.lower = tuned.lower  # the top-level program
     if hasattr(tuned, "_cached"):

@@ -211,12 +211,7 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
         obs = _observe(model.unlabelled(), signals.y, signals.u, signals.dt,
                        jnp.asarray(start, dtype=jnp.int32), length, ob)
         return checked(obs, "observe")
-    # the window padded to its record bucket, the record to hold it, both by repeating the
-    # last sample; only the window's own samples count (`observe_forced`'s `valid`), so windows
-    # and records of every length in a bucket share one program
-    bound = record_bucket(length)
-    pad = record_bucket(max(signals.n_samples, start + bound)) - signals.n_samples
-    y, u = (edge_padded(np.asarray(x), pad) for x in (signals.y, signals.u))  # NumPy: no program
+    y, u, bound = padded_window(signals, start, length)
     obs = _observe(model.unlabelled(), y, u, signals.dt, np.int32(start), bound,
                    np.int32(length if ob is None else ob), np.int32(length))
     if _b.is_traced(obs.y_sim):  # a traced model
@@ -227,6 +222,17 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
 
 
 _observe = jit(observe_window)
+
+
+def padded_window(signals: Signals, start: int, length: int):
+    """(y, u, bound) of concrete `signals`: the window of `length` samples from `start` padded
+    to its record bucket `bound`, and the record to hold it, both by repeating the last sample
+    (NumPy: no program). Only the window's own samples may count (`observe_forced`'s `valid`):
+    windows and records of every length in a bucket then share one program."""
+    bound = record_bucket(length)
+    pad = record_bucket(max(signals.n_samples, start + bound)) - signals.n_samples
+    y, u = (edge_padded(np.asarray(x), pad) for x in (signals.y, signals.u))
+    return y, u, bound
 
 
 def initial_state(model: Model, signals: Signals, window=None):
@@ -276,6 +282,15 @@ def _moving(model, y, u, dt, ends, length):
 def performance_index(model: Model, signals: Signals, window=None, *, observer_window=None):
     r"""E of eq. (17): $\int (y - y_{sim})^2 dt$ on the window, $y_{sim}$ from the observed $x_0$."""
     return observe(model, signals, window, observer_window=observer_window).E
+
+
+def masked_fit_percent(y, y_sim, valid):
+    """`fit_percent` of the first `valid` (traced) samples of y and y_sim (a padded window)."""
+    keep = jnp.arange(y.shape[0]) < valid
+    mean = jnp.sum(jnp.where(keep, y, 0.0)) / valid
+    spread = jnp.linalg.norm(jnp.where(keep, y - mean, 0.0))
+    miss = jnp.linalg.norm(jnp.where(keep, y - y_sim, 0.0))
+    return 100.0 * (1.0 - miss / jnp.where(spread > 0, spread, jnp.nan))
 
 
 def fit_percent(y, y_sim):

@@ -607,6 +607,32 @@ def _damping_ok(a, n: int, zeta: float) -> bool:
     return bool(np.all(-p.real >= zeta * np.abs(p) - 1e-12 * np.abs(p)))
 
 
+def _well_damped(a, n, zeta: float) -> np.ndarray:
+    """`_damping_ok` of every row of `a` (orders `n`), the regular rows (finite, a_n and a_0
+    nonzero) through one batched `eigvals` per order of the companion matrices `np.roots`
+    builds (the same matrices, so the same poles); the others one at a time."""
+    a, n = np.asarray(a, dtype=np.float64), np.asarray(n, dtype=int)
+    ok = np.zeros(len(n), dtype=bool)
+    for order in np.unique(n):
+        rows = np.flatnonzero(n == order)
+        p = a[rows, : order + 1][:, ::-1]  # highest power first, as np.roots takes it
+        regular = np.all(np.isfinite(p), axis=1) & (p[:, 0] != 0) & (p[:, -1] != 0)
+        for r in rows[~regular]:
+            ok[r] = _damping_ok(a[r], int(order), zeta)
+        rows, p = rows[regular], p[regular]
+        if order == 0 or not rows.size:
+            ok[rows] = True
+            continue
+        comp = np.zeros((rows.size, order, order))
+        comp[:, 0, :] = -p[:, 1:] / p[:, :1]
+        comp[:, np.arange(1, order), np.arange(order - 1)] = 1.0
+        poles = np.linalg.eigvals(comp)
+        mag = np.abs(poles)
+        ok[rows] = (np.all(np.isfinite(poles), axis=1) & np.all(poles.real < 0, axis=1)
+                    & np.all(-poles.real >= zeta * mag - 1e-12 * mag, axis=1))
+    return ok
+
+
 def _stack(config: OnlineConfig, picks, fill: dict) -> dict:
     """Candidates `picks` ((search result, column) pairs) as one padded stack (`_candidate`'s
     layout), `fill` (a `_candidate`) first and repeated up to 1 + 2 TOP_RANK rows (a fixed
@@ -638,7 +664,8 @@ def _ok_columns(config: OnlineConfig, res) -> list:
     cols = res.columns
     ok = [int(i) for i in res.rank if int(cols["status"][i]) == 0]
     if "damping" in config.improvements:
-        ok = [i for i in ok if _damping_ok(cols["a"][i], int(cols["n"][i]), config.min_damping)]
+        damped = _well_damped(cols["a"][ok], cols["n"][ok], config.min_damping)
+        ok = [i for i, keep in zip(ok, damped) if keep]
     return ok
 
 

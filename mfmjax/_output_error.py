@@ -263,7 +263,7 @@ def output_error_many(records, models, *, n_max: int | None = None, max_steps: i
     call (`lax.map`, chunks as in `_batch.groups`); with `n_max` every structure of order
     <= n_max has that shape (`_prepare`).
     An entry is None where the start could not be simulated (overflow, unobservable)."""
-    from ._batch import groups, stack, unstack
+    from ._batch import groups, in_parallel, stack, unstack
 
     prepared = []
     for sig, model in zip(records, models):
@@ -273,15 +273,19 @@ def output_error_many(records, models, *, n_max: int | None = None, max_steps: i
             prepared.append(None)
     out = [None] * len(prepared)
     live = [i for i, p in enumerate(prepared) if p is not None]
-    for idx in groups([prepared[i][0] for i in live]):
+
+    def run(idx):
         idx = [live[j] for j in idx]
         z0, *limits = _lm_arguments(prepared[idx[0]][0].size, max_steps, rtol, atol)
         if len(idx) == 1:  # a single pair: the program `output_error` uses
             solved = [_lm(prepared[idx[0]][0], z0, *limits)]
         else:
             solved = zip(*map(unstack, _lm_many(stack([prepared[i][0] for i in idx]), *limits)))
-        for i, one in zip(idx, solved):
-            out[i] = _finish(prepared[i][0], prepared[i][1], one)
+        return [(i, _finish(prepared[i][0], prepared[i][1], one)) for i, one in zip(idx, solved)]
+
+    for pairs in in_parallel(run, groups([prepared[i][0] for i in live])):
+        for i, fit in pairs:
+            out[i] = fit
     return out
 
 

@@ -20,14 +20,21 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
+from . import _boundary as _b
 from ._identify import identify_core
 from ._jit import jit
 from ._model import Model
 from ._modulating import ModulatingFunction, as_values
-from ._observers import fit_percent, observe_forced, validation_window
+from ._observers import (
+    fit_percent,
+    masked_fit_percent,
+    observe_forced,
+    padded_window,
+    validation_window,
+)
 from ._optim import USABLE, solver_code
+from ._pytree import replace_fields
 from ._quadrature import kernel_bucket, kernel_length
 from ._signals import Signals
 from ._simulate import forced_response
@@ -37,14 +44,20 @@ SETTINGS = ("h", "N", "M", "delays")
 MAX_EXPONENT = 12.0  # default upper bound of N and M in refine
 
 
-def _scores(signals, structure, h, N, M, delays, eta, kernel: int, v0, length, ob):
-    """Scores of one setting; `kernel` is the static kernel length, everything else a value."""
+def _scores(signals, structure, h, N, M, delays, eta, kernel: int, v0, length, ob, end=None,
+            valid=None):
+    """Scores of one setting; `kernel` is the static kernel length, everything else a value.
+    With `end` and `valid` (a padded record, `scores`), the record's own length and the
+    validation window's: only their samples count."""
     sig = eqx.tree_at(lambda s: s.delays, signals, jnp.asarray(delays, dtype=jnp.float64))
-    model = identify_core(sig, structure, as_values(ModulatingFunction(N, M, h)), eta, kernel)
-    obs = observe_forced(forced_response(model, sig.u, sig.dt), sig.y, sig.dt, v0, length, ob)
+    model = identify_core(sig, structure, as_values(ModulatingFunction(N, M, h)), eta, kernel,
+                          end)
+    obs = observe_forced(forced_response(model, sig.u, sig.dt), sig.y, sig.dt, v0, length, ob,
+                         None, valid)
     yv = jax.lax.dynamic_slice_in_dim(sig.y, v0, length)
-    out = {"J": model.J, "J_rel": model.J_rel, "E": obs.E, "fit": fit_percent(yv, obs.y_sim),
-           "status": model.status | obs.status}
+    out = {"J": model.J, "J_rel": model.J_rel, "E": obs.E,
+           "fit": fit_percent(yv, obs.y_sim) if valid is None else masked_fit_percent(
+               yv, obs.y_sim, valid), "status": model.status | obs.status}
     return out, model
 
 
@@ -78,9 +91,20 @@ def scores(
         delay_max = float(np.max(np.asarray(delays), initial=0.0))
     kernel = kernel_bucket(kernel_length(float(h_max) + float(delay_max), signals.dt))
     f64 = jnp.float64
-    return _scores_jit(signals.unlabelled(), structure, jnp.asarray(h, dtype=f64),
-                       jnp.asarray(N, dtype=f64), jnp.asarray(M, dtype=f64), delays, eta, kernel,
-                       jnp.asarray(v0, dtype=jnp.int32), length, ob)[0]
+    sig = signals.unlabelled()
+    setting = (structure, jnp.asarray(h, dtype=f64), jnp.asarray(N, dtype=f64),
+               jnp.asarray(M, dtype=f64), delays, eta, kernel)
+    if _b.is_traced(sig.y) or _b.is_traced(sig.u):
+        return _scores_jit(sig, *setting, jnp.asarray(v0, dtype=jnp.int32), length, ob)[0]
+    padded, bound, end, valid = _padded_window(sig, v0, length)
+    return _scores_jit(padded, *setting, np.int32(v0), bound, np.int32(ob), end, valid)[0]
+
+
+def _padded_window(sig: Signals, v0: int, length: int):
+    """(`sig` padded by `padded_window`, the window's static bound, the record's and the
+    window's own lengths as values: `_scores`' `end` and `valid`)."""
+    y, u, bound = padded_window(sig, v0, length)
+    return replace_fields(sig, y=y, u=u), bound, np.int32(sig.n_samples), np.int32(length)
 
 
 _scores_jit = jit(_scores)
@@ -126,10 +150,11 @@ class _Objective(eqx.Module):
     hi: dict
     eta: jax.Array
     start: jax.Array  # first sample of the validation window (a value)
+    lengths: tuple  # (observer, record, window) lengths in samples (values: `_padded_window`)
     structure: Structure = eqx.field(static=True)
     vary: tuple = eqx.field(static=True)
     kernel: int = eqx.field(static=True)  # kernel length bucket of the largest h + delay allowed
-    window: tuple = eqx.field(static=True)  # (length, observer length) in samples
+    window: int = eqx.field(static=True)  # the validation window's bucket in samples
     key: str = eqx.field(static=True)
 
     def settings(self, z):
@@ -141,7 +166,7 @@ class _Objective(eqx.Module):
     def __call__(self, z, args):
         s = self.settings(z)
         out, _ = _scores(self.signals, self.structure, s["h"], s["N"], s["M"], s["delays"],
-                         self.eta, self.kernel, self.start, *self.window)
+                         self.eta, self.kernel, self.start, self.window, *self.lengths)
         val = out[self.key]
         ok = jnp.isfinite(val) & (val > 0) & (out["status"] == 0)
         return jnp.where(ok, jnp.log(jnp.where(ok, val, 1.0)), jnp.inf), None
@@ -219,16 +244,19 @@ def refine(
     p = start.structure.n_params + int(signals.offset)
     h_top = float(np.max(box["h"][1]) if "h" in vary else h0)
     d_top = float(np.max(box["delays"][1]) if "delays" in vary else np.max(d0, initial=0.0))
+    padded, bound, end, valid = _padded_window(signals.unlabelled(), v0, length)
     objective = _Objective(
-        signals=signals.unlabelled(),
+        signals=padded, lengths=(np.int32(ob), end, valid),
         x0={k: jnp.asarray(v, dtype=jnp.float64) for k, v in x0.items()},
         lo={k: jnp.asarray(box[k][0], dtype=jnp.float64) for k in vary},
         hi={k: jnp.asarray(box[k][1], dtype=jnp.float64) for k in vary}, eta=jnp.ones(p),
         start=jnp.asarray(v0, dtype=jnp.int32), structure=start.structure, vary=tuple(vary),
         kernel=kernel_bucket(kernel_length(h_top + d_top, dt)),
-        window=(length, ob), key={"E": "E", "J": "J_rel"}[score],
+        window=bound, key={"E": "E", "J": "J_rel"}[score],
     )
     z0 = {key: jnp.asarray(_logit(x0[key], *box[key])) for key in vary}
+    import optimistix as optx  # here: importing it costs 0.13 s at every CLI start
+
     solver = optx.BFGS(rtol=rtol, atol=atol)
     state = _bfgs_init(solver, objective, z0)
     z, path, result, steps = z0, [float(_value(objective, z0))], optx.RESULTS.successful, 0

@@ -35,3 +35,6 @@ def _fresh_jax_caches():
     compiler (a segfault in backend_compile_and_load, not reproducible in isolation)."""
     yield
     jax.clear_caches()
+    from mfmjax import _executables
+
+    _executables.clear()

@@ -8,8 +8,11 @@ import jax
 
 @contextlib.contextmanager
 def compiles():
-    """Names of the programs JAX compiles inside the block (jitted cores and eager primitives)."""
-    names = []
+    """Names of the programs JAX compiles inside the block (jitted cores and eager primitives),
+    and of those loaded as stored executables (`mfmjax._executables`): a new program either way."""
+    from mfmjax import _executables
+
+    names, first_new = [], len(_executables.loaded)
 
     class Handler(logging.Handler):
         def emit(self, record):
@@ -24,5 +27,6 @@ def compiles():
     try:
         yield names
     finally:
+        names.extend(_executables.loaded[first_new:])
         logger.removeHandler(handler)
         jax.config.update("jax_log_compiles", before)

@@ -12,7 +12,7 @@ import pytest
 import mfmjax
 from mfmjax import _cache
 
-# Runs simulate, identify and observe with the cache on in argv[1] and reports, per step, the
+# Runs simulate, identify, observe and srivc with the cache on in argv[1] and reports, per step, the
 # new cache files and the persistent-cache log lines (jax_explain_cache_misses logs every
 # miss, hit and refused write at WARNING).
 _SCRIPT = r"""
@@ -21,7 +21,9 @@ import numpy as np
 import jax
 import mfmjax
 
-d = mfmjax.enable_compile_cache(sys.argv[1])
+from mfmjax import _executables
+
+d = mfmjax.enable_compile_cache(sys.argv[1], executables=sys.argv[2] == "1")
 jax.config.update("jax_explain_cache_misses", True)
 msgs = []
 
@@ -43,11 +45,13 @@ def names(new, tag):
 out = {"dir": d}
 
 def step(name, fn):
-    before, m0 = files(), len(msgs)
+    before, m0, s0 = files(), len(msgs), dict(_executables.stats)
     r = fn()
     jax.block_until_ready(r)
     new = msgs[m0:]
     out[name] = {"new_files": len(files() - before),
+                 "stored": {k: _executables.stats[k] - s0[k] for k in s0},
+                 "value": np.asarray(jax.tree_util.tree_leaves(r)[0]).ravel().tolist(),
                  "compiled": names(new, "CACHE MISS"),
                  "hits": names(new, "cache hit"),
                  "refused": [m for m in new if "Not writing" in m]}
@@ -62,14 +66,16 @@ sig = mfmjax.Signals(np.asarray(y), u, dt=dt)
 model = step("identify", lambda: mfmjax.identify(sig, mfmjax.Structure(2, [1]),
                                                  mfmjax.ModulatingFunction(4, 4, 2.0)))
 step("observe", lambda: mfmjax.observe(model, sig).x_initial)
+step("srivc", lambda: mfmjax.srivc(sig, model).theta)
 print("RESULT " + json.dumps(out))
 """
 
 
-def _run(script, cache):
+def _run(script, cache, executables=False):
     env = {k: v for k, v in os.environ.items()
            if k not in ("JAX_COMPILATION_CACHE_DIR", "MFMJAX_NO_COMPILE_CACHE")}
-    proc = subprocess.run([sys.executable, str(script), str(cache)], capture_output=True,
+    proc = subprocess.run([sys.executable, str(script), str(cache), str(int(executables))],
+                          capture_output=True,
                           text=True, env=env, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     line = [v for v in proc.stdout.splitlines() if v.startswith("RESULT ")][-1]
@@ -77,14 +83,16 @@ def _run(script, cache):
 
 
 def test_programs_are_written_and_read_back(tmp_path):
+    # JAX's own persistent cache (stored executables off)
     script = tmp_path / "probe.py"
     script.write_text(_SCRIPT)
     cache = tmp_path / "cache"
     cold = _run(script, cache)
     assert cold["dir"] == str(cache)
     warm = _run(script, cache)
-    for name in ("simulate", "identify", "observe"):
+    for name in ("simulate", "identify", "observe", "srivc"):
         c, w = cold[name], warm[name]
+        assert c["value"] == w["value"], name  # bitwise
         # every program compiled in the first process was written (no eqx.error_if or other
         # host callback refused it) ...
         assert c["refused"] == [], (name, c["refused"])
@@ -94,6 +102,125 @@ def test_programs_are_written_and_read_back(tmp_path):
         assert w["compiled"] == [] and w["refused"] == [], (name, w)
         assert w["new_files"] == 0, name
         assert set(c["compiled"]) <= set(w["hits"]), (name, c["compiled"], w["hits"])
+
+
+def _stored(cache):
+    return sorted(f for f in os.listdir(cache) if f.startswith("mfmjax-exe-"))
+
+
+def test_stored_executables_are_written_loaded_and_replaced_when_damaged(tmp_path):
+    script = tmp_path / "probe.py"
+    script.write_text(_SCRIPT)
+    plain = _run(script, tmp_path / "plain")  # JAX's persistent cache only: the reference
+    cache = tmp_path / "cache"
+    cold = _run(script, cache, executables=True)
+    files = _stored(cache)
+    warm = _run(script, cache, executables=True)
+    steps = ("simulate", "identify", "observe", "srivc")  # srivc: an `array_jit` program
+    for name in steps:
+        c, w = cold[name], warm[name]
+        # the first process compiles each program itself and writes it ...
+        assert c["stored"]["compiled"] >= 1 and c["stored"]["written"] >= 1, (name, c)
+        # ... the second loads it: nothing traced, lowered or compiled, nothing new written
+        assert w["stored"] == {"loaded": c["stored"]["written"], "written": 0, "compiled": 0}
+        assert w["compiled"] == [] and w["new_files"] == 0, (name, w)
+        # and the results are bitwise those of the plain path
+        assert c["value"] == w["value"] == plain[name]["value"], name
+    assert len(files) == sum(cold[n]["stored"]["written"] for n in steps)
+    assert _stored(cache) == files
+    # a damaged file (one flipped byte, caught by its checksum) and a truncated one are
+    # deleted and compiled again; the results do not change
+    for i, f in enumerate(files):
+        path = cache / f
+        data = bytearray(path.read_bytes())
+        if i % 2:
+            data[len(data) // 2] ^= 0xFF
+        else:
+            data = data[: len(data) // 3]
+        path.write_bytes(bytes(data))
+    again = _run(script, cache, executables=True)
+    for name in steps:
+        a = again[name]
+        assert a["stored"]["loaded"] == 0 and a["stored"]["written"] >= 1, (name, a)
+        assert a["value"] == plain[name]["value"], name
+    assert _stored(cache) == files  # the same keys, rewritten
+
+
+def test_stored_executable_keys_follow_static_arguments_and_shapes(tmp_path, monkeypatch):
+    from jaxlog import compiles
+
+    from mfmjax import _executables
+
+    dt = 0.01
+    t = np.arange(1201) * dt
+    u = np.sin(0.9 * t) + 0.5 * np.cos(2.3 * t)
+    true = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]])
+    y = np.asarray(mfmjax.simulate(true, u, None, dt=dt))
+    mf = mfmjax.ModulatingFunction(4, 4, 2.0)
+    before = dict(_executables.stats)
+    session = os.environ["JAX_COMPILATION_CACHE_DIR"]
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR")  # it would take precedence over the path
+    try:
+        mfmjax.enable_compile_cache(tmp_path / "cache")
+        sig = mfmjax.Signals(y, u, dt=dt)
+        m2 = mfmjax.identify(sig, mfmjax.Structure(2, [1]), mf)
+        m1 = mfmjax.identify(sig, mfmjax.Structure(1, [1]), mf)  # another static structure
+        short = mfmjax.Signals(y[:700], u[:700], dt=dt)  # another record bucket
+        m3 = mfmjax.identify(short, mfmjax.Structure(2, [1]), mf)
+        files = _stored(tmp_path / "cache")
+        _executables.clear()  # as a new process: every program is loaded from its file
+        with compiles() as names:
+            again = [mfmjax.identify(s, mfmjax.Structure(n, [1]), mf)
+                     for s, n in ((sig, 2), (sig, 1), (short, 2))]
+    finally:
+        mfmjax.enable_compile_cache(session)
+    assert _executables.stats["written"] - before["written"] == 3 == len(files)
+    assert names.count("jit(identify_core)") == 3  # three loads, counted as new programs
+    for old, new in zip((m2, m1, m3), again):
+        np.testing.assert_array_equal(np.asarray(old.theta), np.asarray(new.theta))
+    np.testing.assert_allclose(np.asarray(m2.a), [2.0, 3.0, 1.0], rtol=1e-6)
+
+
+def test_stored_executables_of_one_factory_are_told_apart(tmp_path, monkeypatch):
+    """`srivc`'s program is a closure made per intersample rules and offset term
+    (`_srivc._program`): two of them on arrays of one shape are two files, and each fit equals
+    the one without stored executables bitwise (regression: the file name once held only the
+    closure's name, and the second rule's first call loaded the first rule's executable: a
+    wrong fit, found by CI)."""
+    from mfmjax import _executables
+
+    dt = 0.01
+    t = np.arange(1201) * dt
+    u = np.sin(0.9 * t) + 0.5 * np.cos(2.3 * t)
+    true = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]], intersample=["zoh"])
+    y = np.asarray(mfmjax.simulate(true, u, None, dt=dt))
+    mf = mfmjax.ModulatingFunction(4, 4, 2.0)
+
+    def fits():
+        out = []
+        for rule in ("zoh", "foh"):
+            sig = mfmjax.Signals(y, u, dt=dt, intersample=[rule])
+            start = mfmjax.identify(sig, mfmjax.Structure(2, [1]), mf)
+            out.append(np.asarray(mfmjax.srivc(sig, start).model.theta))
+        return out
+
+    session = os.environ["JAX_COMPILATION_CACHE_DIR"]
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR")
+    try:
+        _executables.enable(None)
+        plain = fits()
+        mfmjax.enable_compile_cache(tmp_path / "cache")
+        stored = fits()
+        names = _stored(tmp_path / "cache")
+        _executables.clear()  # as a new process: both programs are loaded from their files
+        loaded = fits()
+    finally:
+        mfmjax.enable_compile_cache(session)
+    assert not np.array_equal(plain[0], plain[1])  # the two rules give two fits
+    for got in (stored, loaded):
+        for want, fit in zip(plain, got):
+            np.testing.assert_array_equal(fit, want)
+    assert len(names) >= 4  # identify and srivc, per rule
 
 
 def test_public_programs_hold_no_callbacks():

@@ -340,6 +340,25 @@ def test_damping_check():
     assert _damping_ok([0.5, 1.0, 0.0], 1, 0.5)  # first order: one real pole
 
 
+def test_batched_damping_check_equals_one_at_a_time():
+    """`_well_damped` (one batched eigvals per order) decides exactly as `_damping_ok` (np.roots
+    per candidate) on every row: the same companion matrices, so the same poles; rows with
+    a_0 = 0 (a pole at 0) or a_n = 0 (np.roots drops the degree) go one at a time."""
+    from mfmjax._online import _damping_ok, _well_damped
+
+    rng = np.random.default_rng(0)
+    n = rng.integers(0, 5, size=3000)
+    a = np.zeros((n.size, 6))
+    for i, order in enumerate(n):
+        a[i, :order] = rng.standard_normal(order) * rng.choice([1e-4, 1.0, 100.0])
+        a[i, :order] = np.abs(a[i, :order]) if i % 3 == 0 else a[i, :order]  # more stable
+        a[i, order] = 0.0 if i % 77 == 0 else 1.0
+        a[i, 0] = 0.0 if i % 50 == 0 else a[i, 0]
+    want = np.array([_damping_ok(row, int(order), 0.5) for row, order in zip(a, n)])
+    assert 0 < want.sum() < want.size  # both outcomes occur
+    np.testing.assert_array_equal(_well_damped(a, n, 0.5), want)
+
+
 def test_delay_grid_bounded():
     from mfmjax._online import _delay_grid
 

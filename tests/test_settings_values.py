@@ -350,3 +350,60 @@ def test_output_error_new_step_limit_compiles_nothing(noisy):
         fit = mfmjax.output_error(noisy, start, max_steps=5, rtol=1e-9, atol=1e-11)
     assert names == [], f"a new step limit compiled {names}"
     assert fit.steps <= 5
+
+
+def test_scores_new_record_and_window_lengths_inside_a_bucket_compile_nothing(noisy):
+    """`scores` pads the validation window to its record bucket and the record to hold it (as
+    `observe`): a record of 560 samples after one of 600 (bucket 640), and a validation window
+    of 441 samples with an observer window after one of 421 (bucket 448), compile nothing. Only
+    the record's and the window's own samples count: the scores equal the unpadded program's
+    (`_scores` at the record's own length) to the rounding of the Gram's and the observer's
+    sums in another order, amplified by the Gram's conditioning: 1e-10 relative, the bound of
+    `identify`'s padding test on theta (measured: 5e-14); the status is the same."""
+    import jax.numpy as jnp
+
+    from mfmjax._quadrature import kernel_bucket, kernel_length
+    from mfmjax._refine import _scores_jit
+
+    setting = dict(h=2.6, N=4, M=5)
+    mfmjax.scores(noisy, ST, **setting)
+    mfmjax.scores(noisy, ST, validate=(5.0, 26.0), **setting)  # 421 samples, bucket 448
+    short = _head(noisy, 560)
+    with compiles() as names:
+        runs = [mfmjax.scores(short, ST, **setting),
+                mfmjax.scores(short, ST, validate=(3.0, 25.0), observer_window=8.0, **setting)]
+    assert names == [], f"a new record and window length compiled {names}"
+    kernel = kernel_bucket(kernel_length(2.6, DT))
+    p = ST.n_params
+    for out, (v0, length, ob) in zip(runs, [(0, 560, 560), (60, 441, 161)]):
+        ref = _scores_jit(short.unlabelled(), ST, jnp.asarray(2.6), jnp.asarray(4.0),
+                          jnp.asarray(5.0), short.delays, jnp.ones(p), kernel,
+                          jnp.asarray(v0, dtype=jnp.int32), length, ob)[0]
+        assert int(out["status"]) == int(ref["status"]) == 0
+        for key in ("J", "J_rel", "E", "fit"):
+            assert float(out[key]) == pytest.approx(float(ref[key]), rel=1e-10), key
+
+
+def test_refine_new_record_length_inside_a_bucket_compiles_nothing(noisy, monkeypatch):
+    """`refine` scores its settings on the record and validation window padded as in `scores`
+    (600 and 560 samples: 640): a 560-sample record after the 600-sample one compiles nothing,
+    and the refinement equals the unpadded one (padding switched off): the same BFGS path up
+    to the rounding of the scores (5e-14 relative, `scores` test above), which six BFGS steps
+    do not amplify here (measured 9e-14); checked to 1e-10 relative on the path, the refined
+    settings and the returned score, with the same step count and result."""
+    import mfmjax._observers as ob  # `padded_window`, which refine pads with
+
+    def fit(sig, start):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a short run may stop on max_steps: compared
+            # h's box given: its default upper end is a third of the record's duration, which
+            # would set another kernel bound (a static size) for the shorter record
+            return mfmjax.refine(sig, start, vary=("h", "N"), bounds={"h": (0.7, 4.0)},
+                                 max_steps=6)
+
+    got, ref = _padded_and_unpadded(fit, ob, noisy, monkeypatch)
+    assert got.steps == ref.steps and got.result == ref.result
+    np.testing.assert_allclose(got.path, ref.path, rtol=1e-10)
+    for key in ("h", "N"):
+        assert got.settings[key] == pytest.approx(ref.settings[key], rel=1e-10), key
+    assert got.value == pytest.approx(ref.value, rel=1e-10)
