@@ -223,6 +223,27 @@ def test_stored_executables_of_one_factory_are_told_apart(tmp_path, monkeypatch)
     assert len(names) >= 4  # identify and srivc, per rule
 
 
+def test_stored_executable_names_hold_what_the_program_depends_on():
+    """A factory's closures are told apart by their captured values (and nested functions by
+    their own); a static argument printed with a memory address or as a NumPy array (8 digits)
+    keeps its program unstored."""
+    from mfmjax._executables import _disk_name
+
+    def factory(rule, inner=None):
+        def run(x):
+            return (rule, inner)
+
+        return run
+
+    name = lambda fun, static=(None,): _disk_name(fun, {}, static, None, ())  # noqa: E731
+    assert name(factory("zoh")) == name(factory("zoh"))
+    assert name(factory("zoh")) != name(factory("foh"))
+    assert name(factory("zoh", factory(1))) != name(factory("zoh", factory(2)))
+    assert name(factory("zoh"), (None, object())) is None
+    assert name(factory("zoh"), (None, np.array([0.1, 0.2]))) is None
+    assert name(factory("zoh"), (None, (0.1, 0.2))) is not None
+
+
 def test_public_programs_hold_no_callbacks():
     # a host callback (what eqx.error_if lowers to) keeps a program out of the cache; the
     # lowered text of the public entry points under an outer jit must hold none
