@@ -19,10 +19,14 @@ def _session_compile_cache(tmp_path_factory):
     starts cold, and every module after the first reads the programs earlier modules compiled
     (the in-memory caches are still dropped per module, below). Exported through
     JAX_COMPILATION_CACHE_DIR so subprocesses (CLI, notebooks) share it and the CLI's own
-    cache never writes to the user's folder during tests."""
+    cache never writes to the user's folder during tests. Under pytest-xdist the workers share
+    it (the session's base folder): a program one worker compiled, another loads."""
     from mfmjax import enable_compile_cache
 
-    path = enable_compile_cache(tmp_path_factory.getbasetemp() / "jax-compile-cache")
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # the session's folder, shared by the workers
+    path = enable_compile_cache(base / "jax-compile-cache")
     if path is not None:
         os.environ["JAX_COMPILATION_CACHE_DIR"] = path
     yield path
