@@ -24,6 +24,7 @@ from ._optim import USABLE
 from ._pytree import replace_fields
 from ._quadrature import edge_padded, record_bucket
 from ._signals import Signals
+from ._status import Status
 
 
 class OutputErrorFit(eqx.Module):
@@ -102,6 +103,18 @@ def with_parameters(model: Model, theta):
     new = (a, tuple(bs), offset)
     return eqx.tree_at(lambda m: (m.a, m.b, m.offset), model,
                        jax.device_put(new) if xp is np else new)
+
+
+def _fitted(model: Model, theta: np.ndarray) -> Model:
+    """`model` with the output-error parameters `theta` (host): as `srivc`'s, its `theta` is
+    the free-parameter vector, the MFM solve's diagnostics (J, J_rel, cond, mf) do not describe
+    it and are dropped, and its status says whether A(s) is Hurwitz (`Status.UNSTABLE`)."""
+    new = with_parameters(model, theta)
+    stable = bool(np.all(np.roots(np.asarray(new.a, dtype=np.float64)[::-1]).real < 0))
+    nan = jax.device_put(np.float64(np.nan))
+    return replace_fields(new, theta=jax.device_put(np.asarray(theta, dtype=np.float64)),
+                          J=nan, J_rel=nan, cond=nan, mf=None, status=jax.device_put(
+                              np.int32(0 if stable else int(Status.UNSTABLE))))
 
 
 class _Residual(eqx.Module):
@@ -245,7 +258,7 @@ def _finish(residual, meta, solved) -> OutputErrorFit:
     dof = max(length - Jp.shape[1], 1)
     sigma2 = float(np.sum(r**2)) / dof
     cov = sigma2 * np.linalg.pinv(Jp.T @ Jp)
-    new = with_parameters(model, theta) if ok else model
+    new = _fitted(model, theta)  # theta: the start's own parameters when not `ok`
     converged = ok and code == "successful"
     if not converged:
         warnings.warn(f"output_error(): not converged ({code} after {int(n_steps)} steps); the "

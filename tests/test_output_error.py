@@ -55,6 +55,32 @@ def test_unstable_start_is_stabilised_and_fitted(noisy):
     assert "start was unstable" in fit.summary()
 
 
+def test_fitted_model_describes_its_own_parameters(noisy):
+    """The returned model carries what describes it, not the start's MFM diagnostics: `theta`
+    is the fitted free-parameter vector (as `srivc`'s), J, J_rel and cond are NaN, no MF, and
+    the status says whether A(s) is Hurwitz. A truly unstable plant (pole at +0.048, 20 s
+    record: the response grows 2.6x, well inside float64) is fitted unstable and flagged;
+    before, the start's theta, J and status `ok` came back beside the new a and b."""
+    start = mfmjax.identify(noisy, Structure(2, [0]), mfmjax.ModulatingFunction(3, 3, 2.0))
+    fit = mfmjax.output_error(noisy, start)
+    m = fit.model
+    np.testing.assert_array_equal(np.asarray(m.theta), fit.theta)
+    np.testing.assert_array_equal(np.asarray(m.a)[:2], fit.theta[:2])
+    assert np.isnan(float(m.J)) and np.isnan(float(m.J_rel)) and np.isnan(float(m.cond))
+    assert m.mf is None and int(m.status) == 0
+    plant = Model.from_coefficients([-0.05, 1.0, 1.0], [[1.0]])
+    t = np.arange(400) * 0.05
+    u = (np.sin(1.3 * t) + 0.5 * np.sign(np.sin(0.4 * t)))[:, None]
+    y = np.asarray(mfmjax.simulate(plant, u, dt=0.05))
+    y = y + 1e-3 * np.random.default_rng(0).standard_normal(y.size)
+    sig = mfmjax.Signals(y, u, dt=0.05)
+    grown = mfmjax.output_error(sig, mfmjax.identify(sig, Structure(2, [0]),
+                                                     mfmjax.ModulatingFunction(3, 3, 2.0)))
+    assert grown.converged and float(grown.model.a[0]) < 0  # the plant's pole at +0.048
+    assert int(grown.model.status) == int(mfmjax.Status.UNSTABLE)
+    assert "unstable" in grown.model.summary()
+
+
 def test_refine_out_of_steps_warns_and_says_so(noisy):
     start = mfmjax.identify(noisy, Structure(2, [0]), mfmjax.ModulatingFunction(3, 3, 2.0))
     with pytest.warns(UserWarning, match=r"refine\(\): not converged \(max_steps_reached"):
