@@ -389,7 +389,7 @@ def _check_memory(config) -> None:
 
 
 def _cmd_online(args):
-    from ._online import OnlineIdentifier, _load, model_table, save
+    from ._online import OnlineIdentifier, load_with_extra, model_table, save
     from ._signals import read_csv
 
     cols = read_csv(args.file, [c.strip() for c in args.names.split(",")] if args.names else None)
@@ -414,7 +414,7 @@ def _cmd_online(args):
     before = {"sse": 0.0, "count": 0, "intervals": 0}
     resumed = partial = False
     if args.checkpoint and os.path.exists(args.checkpoint):
-        state, extra = _load(args.checkpoint)
+        state, extra = load_with_extra(args.checkpoint)
         _check_resume(args, state.config, u.shape[1], dt, (args.output, inputs))
         ident = OnlineIdentifier(state=state)
         ident.models = list(extra.get("models", []))

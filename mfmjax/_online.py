@@ -1138,7 +1138,8 @@ def save(path, state: OnlineState, extra: dict | None = None) -> None:
     atomic_write(path, data)
 
 
-def _load(path):
+def load_with_extra(path) -> tuple:
+    """(state, extra) of a file written by `save` (`load` returns the state alone)."""
     import zipfile
 
     redo = "resume from an earlier checkpoint or start again from the data"
@@ -1211,7 +1212,7 @@ def load(path) -> OnlineState:
     Refuses, with a message saying so, a file of another format or version, an empty,
     truncated or corrupted file (zip CRC or SHA-256 mismatch) and a state of another layout.
     """
-    return _load(path)[0]
+    return load_with_extra(path)[0]
 
 
 # -- convenience wrapper ------------------------------------------------------------------------
@@ -1278,7 +1279,7 @@ class OnlineIdentifier:
 
     @classmethod
     def load(cls, path, keep_history: bool = True) -> OnlineIdentifier:
-        state, extra = _load(path)
+        state, extra = load_with_extra(path)
         ident = cls(state=state, keep_history=keep_history)
         ident.models = list(extra.get("models", []))
         return ident
