@@ -118,8 +118,8 @@ def _disk_name(fun, options, static, tree, avals) -> str | None:
     """The file name of a program, or None when its static arguments or captured values do
     not print stably."""
     text = repr((_identity(fun), sorted(options.items()), static[1:], tree, avals))
-    if " at 0x" in text or "..." in text or "array(" in text:  # a memory address, or an
-        # array, whose printout rounds to 8 digits
+    if " at 0x" in text or "..." in text or "array(" in text.lower():  # a memory address,
+        # or a NumPy or JAX array, whose printout rounds to 8 digits
         return None
     return _PREFIX + hashlib.sha256((_fingerprint() + text).encode()).hexdigest() + _SUFFIX
 

@@ -241,6 +241,7 @@ def test_stored_executable_names_hold_what_the_program_depends_on():
     assert name(factory("zoh", factory(1))) != name(factory("zoh", factory(2)))
     assert name(factory("zoh"), (None, object())) is None
     assert name(factory("zoh"), (None, np.array([0.1, 0.2]))) is None
+    assert name(factory(jax.numpy.array([0.1, 0.2]))) is None  # printed as Array([...])
     assert name(factory("zoh"), (None, (0.1, 0.2))) is not None
 
 
