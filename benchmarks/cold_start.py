@@ -11,6 +11,11 @@ directory, a second process: read the programs back). Jobs:
   on a 3000-sample two-input record written to CSV (`mfmjax.datasets`, 1 % output noise),
   `--score J`; the CLI still simulates every candidate (E, fit), the NumPy peer does not;
 - `mfmjax identify` (CLI) of one model on the same CSV;
+- in-library `mfmjax.output_error` first call (after import, data and the MFM start from
+  `identify`, timed apart) on the same CSV, from the identify job's model, and a second call
+  in the same process (warm process);
+- `mfmjax online` (CLI) on the forehearth's experiment 1 (`mfmjax dataset forehearth`, 8001
+  samples, paper-mode Algorithm 1, input-1 delay 265 s);
 - in-library `mfmjax.search(score="J", simulate=False)` first call (after import and data
   set-up, timed separately) on the 14,464-candidate grid of `search_throughput.py` (T = 8000,
   K = 2, N, M 3..8, 16 h, n 1..4, every m_k <= n - 1) and on its 760-candidate quick grid, and a
@@ -18,9 +23,11 @@ directory, a second process: read the programs back). Jobs:
 
 Peers, same run, each in a fresh process: the shared-work NumPy/SciPy search
 (`numpy_shared_peer.py`) on the CLI search job (import + CSV read + run) and on both library
-grids (whole-grid time), and the per-candidate NumPy peer (`numpy_mfm.identify`) on the
-identify job. Prints a table and ratios; saves benchmarks/results/cold_start.json.
-`--quick` skips the 14,464-candidate grid.
+grids (whole-grid time), the per-candidate NumPy peer (`numpy_mfm.identify`) on the
+identify job, and SciPy's `least_squares` output error (`interactive.scipy_output_error`, from
+the NumPy MFM start) on the output-error job; the demo and the on-line identifier have no
+peer. Prints a table and ratios; saves benchmarks/results/cold_start.json (with `--jobs`,
+a subset, to cold_start_<jobs>.json). `--quick` skips the 14,464-candidate grid.
 """
 
 from __future__ import annotations
@@ -43,6 +50,7 @@ T_CLI = 3000
 CLI_GRID = dict(n="1:2", N="3:5", M="3:5", h=[float(v) for v in np.linspace(40, 250, 18)])
 IDENTIFY = dict(n=2, m=(1, 1), N=4, M=4, h=120.0)
 MODES = ("no cache", "cold", "warm")
+JOBS = ("demo", "search", "identify", "output_error", "online", "lib")
 
 
 def lib_grid(quick: bool) -> dict:
@@ -115,6 +123,56 @@ def child_peer_identify(csv: str) -> dict:
     return {"run_s": time.perf_counter() - t0}
 
 
+def _csv_signals(csv: str):
+    data = np.loadtxt(csv, delimiter=",", skiprows=1)
+    return data[:, 1], data[:, 2:]
+
+
+def child_oe(csv: str) -> dict:
+    t0 = time.perf_counter()
+    import mfmjax
+
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        mfmjax.enable_compile_cache()
+    t1 = time.perf_counter()
+    y, u = _csv_signals(csv)
+    sig = mfmjax.Signals(y, u, dt=1.0, intersample=("foh", "zoh"))
+    start = mfmjax.identify(sig, mfmjax.Structure(IDENTIFY["n"], IDENTIFY["m"]),
+                            mfmjax.ModulatingFunction(IDENTIFY["N"], IDENTIFY["M"],
+                                                      IDENTIFY["h"]))
+    t2 = time.perf_counter()
+    fit = mfmjax.output_error(sig, start)
+    t3 = time.perf_counter()
+    again = mfmjax.output_error(sig, start)
+    t4 = time.perf_counter()
+    assert fit.converged and np.array_equal(fit.theta, again.theta)
+    return {"import_s": t1 - t0, "data_s": t2 - t1, "first_s": t3 - t2, "second_s": t4 - t3,
+            "E": float(fit.E)}
+
+
+def child_peer_oe(csv: str) -> dict:
+    from types import SimpleNamespace
+
+    t0 = time.perf_counter()
+    sys.path.insert(0, HERE)
+    import numpy_mfm
+    from interactive import scipy_output_error
+
+    t1 = time.perf_counter()
+    y, u = _csv_signals(csv)
+    n, m = IDENTIFY["n"], list(IDENTIFY["m"])
+    theta = numpy_mfm.identify(y, u, 1.0, ("foh", "zoh"), n, m, IDENTIFY["N"], IDENTIFY["M"],
+                               IDENTIFY["h"])
+    a = theta[: n + 1] / theta[n]
+    b = [theta[n + 1 + sum(mk + 1 for mk in m[:k]):][: m[k] + 1] / theta[n] for k in range(2)]
+    start = SimpleNamespace(n=n, a=a, b=b)
+    t2 = time.perf_counter()
+    _, E, status = scipy_output_error(y, u, 1.0, ("foh", "zoh"), start)
+    t3 = time.perf_counter()
+    assert status > 0, status
+    return {"import_s": t1 - t0, "data_s": t2 - t1, "run_s": t3 - t2, "E": E}
+
+
 # -- parent -----------------------------------------------------------------------------------
 
 
@@ -166,13 +224,22 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="skip the 14,464-candidate grid")
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
+    ap.add_argument("--jobs", default=",".join(JOBS),
+                    help=f"comma-separated subset of {','.join(JOBS)} (default: all)")
     args = ap.parse_args()
+    jobs = args.jobs.split(",")
+    if not set(jobs) <= set(JOBS):
+        ap.error(f"--jobs: unknown {sorted(set(jobs) - set(JOBS))}; choose from {JOBS}")
     if args.child:
         kind = args.child[0]
         if kind == "lib":
             res = child_lib(args.child[1] == "small")
         elif kind == "peer":
             res = child_peer(args.child[1], args.child[2] if len(args.child) > 2 else None)
+        elif kind == "oe":
+            res = child_oe(args.child[1])
+        elif kind == "peer_oe":
+            res = child_peer_oe(args.child[1])
         else:
             res = child_peer_identify(args.child[1])
         print("RESULT " + json.dumps(res))
@@ -194,6 +261,10 @@ def main():
                           "--m", ",".join(map(str, IDENTIFY["m"])), "--N", str(IDENTIFY["N"]),
                           "--M", str(IDENTIFY["M"]), "--h", str(IDENTIFY["h"])]
     demo_cmd = cli + ["demo", "--out", os.path.join(work, "demo")]
+    fh1 = os.path.join(work, "forehearth1.csv")
+    online_cmd = cli + ["online", fh1, "--output", "zone_temperature", "--inputs",
+                        "previous_zone_temperature,mixture_pressure", "--time", "time",
+                        "--delays", "265,0"]
     out = {"machine": {"cpus": os.cpu_count(), "load_start": os.getloadavg()},
            "jobs": {}, "notes": []}
     rows = []
@@ -212,19 +283,43 @@ def main():
         return res
 
     print("CLI jobs (wall time of a new process, import included):", flush=True)
-    out["jobs"]["demo"] = cli_job("demo", demo_cmd)
-    out["jobs"]["search_cli_810"] = cli_job("search", search_cmd)
-    wall, r = _child(["peer", "cli", csv], _env(None, None), work)
-    out["jobs"]["search_cli_810"]["numpy_shared_peer"] = dict(r, wall_s=wall)
-    print(f"  {'peer':<10} {'search':<9} {wall:7.2f} s ({r['candidates']} candidates, run "
-          f"{r['run_s']:.2f} s)", flush=True)
-    out["jobs"]["identify_cli"] = cli_job("identify", identify_cmd)
-    wall, r = _child(["peer_identify", csv], _env(None, None), work)
-    out["jobs"]["identify_cli"]["numpy_per_candidate_peer"] = dict(r, wall_s=wall)
-    print(f"  {'peer':<10} {'identify':<9} {wall:7.2f} s", flush=True)
+    if "demo" in jobs:
+        out["jobs"]["demo"] = cli_job("demo", demo_cmd)
+    if "search" in jobs:
+        out["jobs"]["search_cli_810"] = cli_job("search", search_cmd)
+        wall, r = _child(["peer", "cli", csv], _env(None, None), work)
+        out["jobs"]["search_cli_810"]["numpy_shared_peer"] = dict(r, wall_s=wall)
+        print(f"  {'peer':<10} {'search':<9} {wall:7.2f} s ({r['candidates']} candidates, run "
+              f"{r['run_s']:.2f} s)", flush=True)
+    if "identify" in jobs:
+        out["jobs"]["identify_cli"] = cli_job("identify", identify_cmd)
+        wall, r = _child(["peer_identify", csv], _env(None, None), work)
+        out["jobs"]["identify_cli"]["numpy_per_candidate_peer"] = dict(r, wall_s=wall)
+        print(f"  {'peer':<10} {'identify':<9} {wall:7.2f} s", flush=True)
+    if "online" in jobs:
+        _run(cli + ["dataset", "forehearth", "--experiment", "1", "-o", fh1], _env(None, None),
+             work)
+        out["jobs"]["online_cli"] = cli_job("online", online_cmd)
+
+    if "output_error" in jobs:
+        print("in-library output_error, first call in a new process:", flush=True)
+        res = {}
+        cache = os.path.join(work, "cache-oe")
+        for mode in MODES:
+            wall, r = _child(["oe", csv], _env(mode, cache), work)
+            res[mode] = dict(r, wall_s=wall)
+            if mode == "cold":
+                res["cache_files"], res["cache_mb"] = _dir_size(cache)
+            print(f"  oe     {mode:<9} first {r['first_s']:7.2f} s  second {r['second_s']:6.3f}"
+                  f" s  import {r['import_s']:5.2f} s  (start {r['data_s']:.2f} s)", flush=True)
+        wall, r = _child(["peer_oe", csv], _env(None, None), work)
+        res["scipy_least_squares_peer"] = dict(r, wall_s=wall)
+        print(f"  oe     peer      run   {r['run_s']:7.2f} s  import {r['import_s']:5.2f} s "
+              f"(E {r['E']:.6g} against {res['warm']['E']:.6g})", flush=True)
+        out["jobs"]["output_error_lib"] = res
 
     print("in-library search, first call in a new process:", flush=True)
-    for grid in (("small",) if args.quick else ("small", "big")):
+    for grid in (() if "lib" not in jobs else ("small",) if args.quick else ("small", "big")):
         res = {}
         cache = os.path.join(work, f"cache-lib-{grid}")
         for mode in MODES:
@@ -250,17 +345,25 @@ def main():
             vals = [res[m]["first_s"] for m in MODES]
             peer = res["numpy_shared_peer"]["run_s"]
             label = f"search {res['cold']['candidates']} (1st call)"
+        elif key == "output_error_lib":
+            vals = [res[m]["first_s"] for m in MODES]
+            peer = res["scipy_least_squares_peer"]["run_s"]
+            label = "output_error (1st call)"
         else:
             vals = [res[m]["wall_s"] for m in MODES]
             p = res.get("numpy_shared_peer") or res.get("numpy_per_candidate_peer")
             peer = p["wall_s"] if p else float("nan")
             label = {"demo": "mfmjax demo (CLI)", "search_cli_810": "mfmjax search 810 (CLI)",
-                     "identify_cli": "mfmjax identify (CLI)"}[key]
+                     "identify_cli": "mfmjax identify (CLI)",
+                     "online_cli": "mfmjax online (CLI)"}[key]
         res["ratio_warm_to_peer"] = vals[2] / peer
         res["ratio_cold_to_peer"] = vals[1] / peer
         rows.append((label, *vals, peer))
         print(f"{label:<28}" + "".join(f"{v:>10.2f}" for v in vals) + f"{peer:>10.2f}"
               f"{vals[2] / peer:>11.2f}{vals[1] / peer:>11.2f}")
+    if "output_error_lib" in out["jobs"]:
+        r = out["jobs"]["output_error_lib"]["warm"]
+        print(f"output_error: warm process (second call) {r['second_s']:.3f} s")
     for key, res in out["jobs"].items():
         if key.startswith("search_lib"):
             c = res["cold"]["candidates"]
@@ -270,10 +373,13 @@ def main():
         "CLI rows and the identify peer: wall time of a new process (interpreter + imports "
         "+ work); search_lib rows: the first search call after import and data set-up; "
         "its peer: the NumPy whole-grid run time (import and data excluded).",
-        "demo has no NumPy peer (the on-line identifier has none).",
+        "demo and online have no NumPy peer.",
+        "output_error rows: the first output_error call after import, data and the MFM start "
+        "(identify); its peer: SciPy least_squares from the NumPy MFM start (run time).",
         "the CLI search computes E and fit for every candidate (simulation); the peer J only.",
     ]
-    path = os.path.join(HERE, "results", "cold_start.json")
+    name = "cold_start" + ("" if set(jobs) == set(JOBS) else "_" + "_".join(jobs))
+    path = os.path.join(HERE, "results", name + ".json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as fh:
         json.dump(json_safe(out), fh, indent=2, allow_nan=False)  # no NaN: null

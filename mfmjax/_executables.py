@@ -27,6 +27,7 @@ import hashlib
 import io
 import os
 import pickle
+import re
 import threading
 
 import jax
@@ -143,13 +144,31 @@ def _fresh_compile():
         cc._cache_used = previous
 
 
+@functools.cache
+def _initialize_lapack() -> None:
+    """jaxlib's LAPACK kernels take their function pointers from SciPy when JAX first lowers a
+    LAPACK call in the process; an executable loaded without that lowering would call null
+    pointers (a segfault, found on `output_error`'s solver), so loading one sets them first."""
+    from jax._src.lax import linalg
+
+    linalg.initialize_lapack()
+
+
+def _custom_calls(lowered) -> set[str]:
+    """The custom-call targets of a jax `Lowered` program (its StableHLO text)."""
+    return set(re.findall(r"custom_call @([\w.]+)", lowered.as_text()))
+
+
 def _load(path):
     try:
         with open(path, "rb") as fh:
             digest, payload = fh.read(32), fh.read()
         if hashlib.sha256(payload).digest() != digest:
             raise ValueError("checksum mismatch")
-        compiled = _serialize.deserialize_and_load(*pickle.loads(payload))
+        lapack, serialized = pickle.loads(payload)
+        if lapack:
+            _initialize_lapack()
+        compiled = _serialize.deserialize_and_load(*serialized)
         os.utime(path)  # recently used: `_prune` deletes the oldest first
     except FileNotFoundError:
         return None
@@ -174,12 +193,15 @@ def _compile_and_store(lowered, path):
     extra = lowered._lowering.compile_args
     if any(extra.get(k) for k in ("host_callbacks", "ordered_effects", "unordered_effects")):
         return None  # an `eqx.error_if` or other callback: the plain path reports its errors
+    calls = _custom_calls(lowered)
+    if any(not c.startswith("lapack_") for c in calls):
+        return None  # a kernel whose set-up in a new process is not known here: never stored
     with _compiling, _fresh_compile() as fresh:
         compiled = lowered.compile()
     stats["compiled"] += 1
     if fresh:
         try:
-            payload = _dumps(_serialize.serialize(compiled))
+            payload = _dumps((bool(calls), _serialize.serialize(compiled)))
             atomic_write(path, hashlib.sha256(payload).digest() + payload)
             stats["written"] += 1
         except Exception:  # noqa: BLE001 - not serialisable, or the disk is full

@@ -12,7 +12,7 @@ import pytest
 import mfmjax
 from mfmjax import _cache
 
-# Runs simulate, identify, observe and srivc with the cache on in argv[1] and reports, per step, the
+# Runs simulate, identify, observe, srivc and output_error with the cache on in argv[1] and reports, per step, the
 # new cache files and the persistent-cache log lines (jax_explain_cache_misses logs every
 # miss, hit and refused write at WARNING).
 _SCRIPT = r"""
@@ -67,6 +67,7 @@ model = step("identify", lambda: mfmjax.identify(sig, mfmjax.Structure(2, [1]),
                                                  mfmjax.ModulatingFunction(4, 4, 2.0)))
 step("observe", lambda: mfmjax.observe(model, sig).x_initial)
 step("srivc", lambda: mfmjax.srivc(sig, model).theta)
+step("output_error", lambda: mfmjax.output_error(sig, model).theta)  # a LAPACK solve inside
 print("RESULT " + json.dumps(out))
 """
 
@@ -90,7 +91,7 @@ def test_programs_are_written_and_read_back(tmp_path):
     cold = _run(script, cache)
     assert cold["dir"] == str(cache)
     warm = _run(script, cache)
-    for name in ("simulate", "identify", "observe", "srivc"):
+    for name in ("simulate", "identify", "observe", "srivc", "output_error"):
         c, w = cold[name], warm[name]
         assert c["value"] == w["value"], name  # bitwise
         # every program compiled in the first process was written (no eqx.error_if or other
@@ -116,7 +117,9 @@ def test_stored_executables_are_written_loaded_and_replaced_when_damaged(tmp_pat
     cold = _run(script, cache, executables=True)
     files = _stored(cache)
     warm = _run(script, cache, executables=True)
-    steps = ("simulate", "identify", "observe", "srivc")  # srivc: an `array_jit` program
+    # srivc: an `array_jit` program; output_error: its solver calls LAPACK, whose kernels a new
+    # process must set up before it runs a loaded executable (it crashed the process before)
+    steps = ("simulate", "identify", "observe", "srivc", "output_error")
     for name in steps:
         c, w = cold[name], warm[name]
         # the first process compiles each program itself and writes it ...
