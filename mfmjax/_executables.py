@@ -6,7 +6,8 @@ program text, so every new process still traces and lowers each program before i
 up: 0.6 s of the warm-cache `mfmjax identify` CLI's 1.8 s. A stored executable is keyed
 instead by what determines the program (the function, its static arguments, the shapes and
 dtypes of its array arguments, the compiler options, a fingerprint of mfmjax's source and the
-versions of jax, jaxlib, equinox and numpy, the float64 flag, `XLA_FLAGS` and the device), and
+versions of jax, jaxlib, equinox and numpy, the float64 flag, `XLA_FLAGS`, the device and the
+CPU's features), and
 holds the serialized executable (`jax.experimental.serialize_executable`).
 
 These programs are compiled with JAX's persistent cache bypassed: XLA:CPU re-serialises an
@@ -81,11 +82,25 @@ def _fingerprint() -> str:
             with open(path, "rb") as fh:
                 h.update(fh.read())
     device = jax.devices()[0]
+    h.update(_cpu_features().encode())
     h.update(repr((jax.__version__, jaxlib.__version__, equinox.__version__, np.__version__,
                    bool(jax.config.jax_enable_x64), str(jax.config.jax_default_matmul_precision),
                    os.environ.get("XLA_FLAGS", ""), device.platform, device.device_kind,
                    jax.device_count())).encode())
     return h.hexdigest()
+
+
+def _cpu_features() -> str:
+    """The CPU's model and instruction-set flags: XLA:CPU compiles for the host's features, so
+    a folder shared between machines (a network home) never hands one CPU's code to another."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo") as fh:
+            lines = [v for v in fh if v.lower().startswith(("model name", "flags", "features"))]
+        return "".join(sorted(set(lines)))
+    except OSError:
+        return platform.processor() + platform.machine()
 
 
 def _missing():
