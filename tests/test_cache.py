@@ -248,6 +248,61 @@ def test_stored_executable_names_hold_what_the_program_depends_on():
     assert name(factory("zoh"), (None, (0.1, 0.2))) is not None
 
 
+# The other public paths, run in two processes sharing one cache folder (a digest per result)
+_MORE = r"""
+import hashlib, json, sys, warnings
+import numpy as np
+import jax
+import mfmjax
+from mfmjax import _executables
+from mfmjax.datasets import forehearth, simulated_experiment
+
+warnings.simplefilter("ignore")
+mfmjax.enable_compile_cache(sys.argv[1])
+true = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0, 0.3]], intersample=["foh"])
+sig = simulated_experiment(true, dt=0.05, n_samples=1500, seed=3, noise_std=0.01)
+st, mf = mfmjax.Structure(2, [1]), mfmjax.ModulatingFunction(3, 4, 2.0)
+m = mfmjax.identify(sig, st, mf)
+d = forehearth(1, seed=0)
+cfg = mfmjax.OnlineConfig(dt=1.0, n_inputs=2, intersample=("foh", "zoh"), delays=(265.0, 0.0))
+ident = mfmjax.OnlineIdentifier(cfg)
+jobs = {
+    "search": lambda: mfmjax.search(sig, n=(1, 2), N=(3, 4), M=(3, 4), h=(1.5, 2.0)),
+    "scores": lambda: mfmjax.scores(sig, st, h=2.0, N=3.0, M=4.0),
+    "refine": lambda: mfmjax.refine(sig, m, vary=("h",), max_steps=3),
+    "frequency_response": lambda: mfmjax.frequency_response(m),
+    "moving_final_states": lambda: mfmjax.moving_final_states(m, sig, 5.0, np.array([20.0, 40.0])),
+    "online": lambda: [ident.update(np.arange(i, i + 500.0), d["y"][i:i + 500],
+                                    d["u"][i:i + 500]) for i in range(0, 3500, 500)],
+}
+out = {}
+for name, fn in jobs.items():
+    s0 = dict(_executables.stats)
+    h = hashlib.sha256()
+    for v in jax.tree_util.tree_leaves(fn()):
+        if isinstance(v, (np.ndarray, jax.Array, float, int)):
+            h.update(np.ascontiguousarray(np.asarray(v)).tobytes())
+    out[name] = [h.hexdigest(), {k: _executables.stats[k] - s0[k] for k in s0}]
+print("RESULT " + json.dumps(out))
+"""
+
+
+def test_stored_executables_of_the_other_public_paths_load_and_agree(tmp_path):
+    """search, scores, refine, frequency_response, moving_final_states and the on-line
+    identifier: a second process loads every program the first stored and returns bitwise
+    the same results (the probe that found the LAPACK crash ran every public function this
+    way; identify, simulate, observe, srivc and output_error are in the tests above)."""
+    script = tmp_path / "more.py"
+    script.write_text(_MORE)
+    cold = _run(script, tmp_path / "cache")
+    warm = _run(script, tmp_path / "cache")
+    for name, (value, stats) in cold.items():
+        assert warm[name][0] == value, name
+        assert warm[name][1] == {"loaded": stats["written"], "written": 0, "compiled": 0}, (
+            name, stats, warm[name][1])
+    assert sum(s["written"] for _, s in cold.values()) >= 6
+
+
 def test_public_programs_hold_no_callbacks():
     # a host callback (what eqx.error_if lowers to) keeps a program out of the cache; the
     # lowered text of the public entry points under an outer jit must hold none
