@@ -282,6 +282,20 @@ def main():
             print(f"  {name:<10} {mode:<9} {wall:7.2f} s", flush=True)
         return res
 
+    def lib_job(label, child, cache_name, note):
+        """A library child in each mode (first and second call), one cache folder."""
+        res = {}
+        cache = os.path.join(work, cache_name)
+        for mode in MODES:
+            wall, r = _child(child, _env(mode, cache), work)
+            res[mode] = dict(r, wall_s=wall)
+            if mode == "cold":
+                res["cache_files"], res["cache_mb"] = _dir_size(cache)
+            print(f"  {label:<6} {mode:<9} first {r['first_s']:7.2f} s  second "
+                  f"{r['second_s']:6.3f} s  import {r['import_s']:5.2f} s  ({note(r)})",
+                  flush=True)
+        return res
+
     print("CLI jobs (wall time of a new process, import included):", flush=True)
     if "demo" in jobs:
         out["jobs"]["demo"] = cli_job("demo", demo_cmd)
@@ -303,15 +317,7 @@ def main():
 
     if "output_error" in jobs:
         print("in-library output_error, first call in a new process:", flush=True)
-        res = {}
-        cache = os.path.join(work, "cache-oe")
-        for mode in MODES:
-            wall, r = _child(["oe", csv], _env(mode, cache), work)
-            res[mode] = dict(r, wall_s=wall)
-            if mode == "cold":
-                res["cache_files"], res["cache_mb"] = _dir_size(cache)
-            print(f"  oe     {mode:<9} first {r['first_s']:7.2f} s  second {r['second_s']:6.3f}"
-                  f" s  import {r['import_s']:5.2f} s  (start {r['data_s']:.2f} s)", flush=True)
+        res = lib_job("oe", ["oe", csv], "cache-oe", lambda r: f"start {r['data_s']:.2f} s")
         wall, r = _child(["peer_oe", csv], _env(None, None), work)
         res["scipy_least_squares_peer"] = dict(r, wall_s=wall)
         print(f"  oe     peer      run   {r['run_s']:7.2f} s  import {r['import_s']:5.2f} s "
@@ -320,16 +326,8 @@ def main():
 
     print("in-library search, first call in a new process:", flush=True)
     for grid in (() if "lib" not in jobs else ("small",) if args.quick else ("small", "big")):
-        res = {}
-        cache = os.path.join(work, f"cache-lib-{grid}")
-        for mode in MODES:
-            wall, r = _child(["lib", grid], _env(mode, cache), work)
-            res[mode] = dict(r, wall_s=wall)
-            if mode == "cold":
-                res["cache_files"], res["cache_mb"] = _dir_size(cache)
-            print(f"  {grid:<6} {mode:<9} first {r['first_s']:7.2f} s  second {r['second_s']:6.3f}"
-                  f" s  import {r['import_s']:5.2f} s  ({r['candidates']} candidates)",
-                  flush=True)
+        res = lib_job(grid, ["lib", grid], f"cache-lib-{grid}",
+                      lambda r: f"{r['candidates']} candidates")
         wall, r = _child(["peer", grid], _env(None, None), work)
         res["numpy_shared_peer"] = dict(r, wall_s=wall)
         print(f"  {grid:<6} peer      run   {r['run_s']:7.2f} s  import {r['import_s']:5.2f} s "
