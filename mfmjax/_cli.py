@@ -81,6 +81,19 @@ def _ints(text: str, name: str) -> list[int]:
     return [int(v) for v in vals]
 
 
+def _add_model_args(p: argparse.ArgumentParser):
+    """The saved model of `validate` and `report`: `MODEL FILE` or `FILE --model MODEL`."""
+    p.add_argument("model", nargs="?", help="model JSON written by save_model / --save")
+    p.add_argument("--model", dest="model_option", metavar="MODEL",
+                   help="the model JSON, given as an option instead (FILE --model MODEL)")
+
+
+def _model_path(args) -> str:
+    if (args.model is None) == (args.model_option is None):
+        raise _UserError("give the model JSON once: MODEL FILE, or FILE --model MODEL")
+    return args.model if args.model is not None else args.model_option
+
+
 def _add_data_args(p: argparse.ArgumentParser):
     p.add_argument("file", help="CSV file with a header row")
     p.add_argument("--output", required=True, help="output column name")
@@ -666,7 +679,7 @@ def _with_delays(sig, delays):  # a Signals with other delays
 def _cmd_validate(args):
     import mfmjax
 
-    model = mfmjax.load_model(args.model)
+    model = mfmjax.load_model(_model_path(args))
     sig = _load_signals(args)
     window = _window(args.window, "window") if args.window else None
     obs = mfmjax.observe(model, sig, window)
@@ -719,6 +732,7 @@ def _cmd_report(args):
 
     from . import _analysis as an
 
+    args.model = _model_path(args)
     model = mfmjax.load_model(args.model)
     cov, note = an.saved_covariance(args.model, model)
     sig = _load_signals(args)
@@ -792,15 +806,15 @@ def main(argv=None) -> int:
     _add_window_args(p)
     p.set_defaults(func=_cmd_search)
     p = sub.add_parser("validate", help="E, fit %% and observed x0 of a saved model on a record")
+    _add_model_args(p)
     _add_data_args(p)
-    p.add_argument("--model", required=True, help="model JSON written by identify --save")
     p.add_argument("--window", help="T0,T1 (default: the whole record)")
     p.add_argument("--plot", help="write measured vs simulated output to this PNG")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_validate)
     p = sub.add_parser("report", help="compare, residual, step and Bode figures and "
                        "report.json of a saved model on a record")
-    p.add_argument("model", help="model JSON written by save_model / --save")
+    _add_model_args(p)
     _add_data_args(p)
     p.add_argument("-o", required=True, help="directory for the PNGs and report.json")
     p.add_argument("--window", help="T0,T1 validation window (default: the whole record)")

@@ -155,7 +155,17 @@ def test_identify_save_and_validate(csv_file, tmp_path, capsys):
     assert np.mean(img[..., :3] < 0.9) > 0.01
     assert main(["validate", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time",
                  "t", "--model", str(model_path)]) == 0
-    assert "fit" in capsys.readouterr().out
+    first = capsys.readouterr().out
+    assert "fit" in first
+    # `report`'s form (MODEL FILE) works too, with the same result; the model given twice or
+    # not at all is a one-line user error (exit 2)
+    cols = ["--output", "temp", "--inputs", "u1,u2", "--time", "t"]
+    assert main(["validate", str(model_path), str(csv_file), *cols]) == 0
+    assert capsys.readouterr().out == first
+    for args in ([str(csv_file)], [str(model_path), str(csv_file), "--model", str(model_path)]):
+        assert main(["validate", *args, *cols]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err == "error: give the model JSON once: MODEL FILE, or FILE --model MODEL"
 
 
 @pytest.mark.parametrize(

@@ -81,6 +81,13 @@ def test_report_without_covariance_says_no_bands(files, capsys):
     rep = json.loads((out / "report.json").read_text())
     assert rep["bands"] is False
     _png(out / "step.png")
+    # `validate`'s form (FILE --model MODEL) works too and writes the same report
+    again = folder / "plain-option"
+    assert main(["report", str(folder / "data.csv"), "--model", str(folder / "nocov.json"),
+                 *ARGS, "-o", str(again)]) == 0
+    assert capsys.readouterr().out == text.replace(str(out), str(again))
+    same = json.loads((again / "report.json").read_text())
+    assert same.pop("figures").keys() == rep.pop("figures").keys() and same == rep
 
 
 @pytest.mark.parametrize("extra,match", [
