@@ -82,31 +82,6 @@ def test_cli_process_one_line_exit_2(tmp_path):
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
 
 
-def test_demo_shortened(tmp_path, capsys):
-    from matplotlib.image import imread
-
-    out_dir = tmp_path / "demo"
-    # the paper's candidate set (h in {50, 100}); improved mode: tests/test_demo_modes.py
-    assert main(["demo", "--out", str(out_dir), "--horizon", "3500", "--mode", "paper"]) == 0
-    out = capsys.readouterr().out
-    assert out.count("Model nr") == 4  # Tables 2-3 and 4-5
-    assert out.count("mean square prediction error") == 2 and "paper: 0.2841" in out
-    res = json.loads((out_dir / "results.json").read_text())
-    assert [e["experiment"] for e in res["experiments"]] == [1, 2]
-    for e in res["experiments"]:
-        assert e["models"], "the first model must be identified within 3500 s"
-        rec = e["models"][0]
-        assert rec["operating_point"] == "p1" and rec["n"] in (2, 3)
-        assert (rec["N"], rec["M"]) in {(3, 4), (3, 6), (5, 4), (5, 6)} and rec["h"] in (50, 100)
-        assert 0 < e["mse"] < 25  # degC^2: predictions of a 1160 degC temperature, not garbage
-        assert 260 <= e["delay_range"][0] <= e["delay_range"][1] <= 340
-        assert e["intervals"][-1]["t_end"] == 3500.0
-    for ex in (1, 2):
-        for kind, shape in (("inputs", (600, 1000)), ("prediction", (400, 1000))):
-            img = imread(out_dir / f"experiment{ex}_{kind}.png")
-            assert img.shape[:2] == shape and img[..., :3].std() > 0.05
-
-
 def test_demo_user_error(capsys):
     assert main(["demo", "--horizon", "100"]) == 2
     assert "--horizon" in capsys.readouterr().err

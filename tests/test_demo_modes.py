@@ -27,9 +27,19 @@ def _png_size(path):
 
 @pytest.mark.parametrize("mode", ["paper", "improved"])
 def test_demo_figures_both_modes(tmp_path, capsys, mode):
+    """Improved mode through `demo()`, paper mode through the command line (`mfmjax demo`,
+    the first thing a user runs; its own checks are in `_check_paper_cli`)."""
     out = tmp_path / mode
-    res = demo(str(out), horizon=3500.0, mode=mode)
+    if mode == "paper":
+        from mfmjax._cli import main
+
+        assert main(["demo", "--out", str(out), "--horizon", "3500", "--mode", "paper"]) == 0
+        res = json.loads((out / "results.json").read_text())
+    else:
+        res = demo(str(out), horizon=3500.0, mode=mode)
     text = capsys.readouterr().out
+    if mode == "paper":
+        _check_paper_cli(text, res, out)
     assert res["mode"] == mode and text.count("mean square prediction error") == 2
     assert text.count("true delay [s]") == 2  # the delay table of each experiment
     for ex in (1, 2):
@@ -43,16 +53,37 @@ def test_demo_figures_both_modes(tmp_path, capsys, mode):
             assert 260 <= row["true_delay"] <= 340
 
 
+def _check_paper_cli(out, res, out_dir):
+    """`mfmjax demo --mode paper --horizon 3500`: the paper's tables and figures."""
+    from matplotlib.image import imread
+
+    # the paper's candidate set (h in {50, 100})
+    assert out.count("Model nr") == 4  # Tables 2-3 and 4-5
+    assert out.count("mean square prediction error") == 2 and "paper: 0.2841" in out
+    assert [e["experiment"] for e in res["experiments"]] == [1, 2]
+    for e in res["experiments"]:
+        assert e["models"], "the first model must be identified within 3500 s"
+        rec = e["models"][0]
+        assert rec["operating_point"] == "p1" and rec["n"] in (2, 3)
+        assert (rec["N"], rec["M"]) in {(3, 4), (3, 6), (5, 4), (5, 6)} and rec["h"] in (50, 100)
+        assert 0 < e["mse"] < 25  # degC^2: predictions of a 1160 degC temperature, not garbage
+        assert 260 <= e["delay_range"][0] <= e["delay_range"][1] <= 340
+        assert e["intervals"][-1]["t_end"] == 3500.0
+    for ex in (1, 2):
+        for kind, shape in (("inputs", (600, 1000)), ("prediction", (400, 1000))):
+            img = imread(out_dir / f"experiment{ex}_{kind}.png")
+            assert img.shape[:2] == shape and img[..., :3].std() > 0.05
+
+
 def test_demo_unknown_mode():
     with pytest.raises(ValueError, match="unknown mode 'fast'"):
         demo("unused", mode="fast")
 
 
-def test_cli_demo_mode_paper(tmp_path, capsys):
+def test_cli_demo_unknown_mode(capsys):
+    """(`mfmjax demo --mode paper` runs in `test_demo_figures_both_modes`.)"""
     from mfmjax._cli import main
 
-    assert main(["demo", "--out", str(tmp_path), "--horizon", "3000", "--mode", "paper"]) == 0
-    assert json.loads((tmp_path / "results.json").read_text())["mode"] == "paper"
     assert main(["demo", "--mode", "bogus"]) == 2
     assert "--mode" in capsys.readouterr().err
 
