@@ -146,8 +146,8 @@ def estimate(
                               N=N, M=M, h=h, m=m, delays=delays, records=records)
         outs = _from_holdout(records, sels, holdout=holdout, polish=polish, max_iter=max_iter,
                              tol=tol)
-    outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes)
-            for o, r in zip(outs, records)]
+    outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes
+                           + unstable_note(o.model)) for o, r in zip(outs, records)]
     for r, o in enumerate(outs):
         if not o.converged:
             which = "" if single else f" (record {r})"
@@ -533,6 +533,16 @@ def _from_search(records, results, *, polish, max_iter, tol) -> list:
                             "srivc + output error", f"{res.score.upper()} on the estimation "
                             "data", {}, ()))
     return out
+
+
+def unstable_note(model) -> tuple:
+    """A note (in a tuple) when `model`'s A(s) has a root with Re >= 0, else ()."""
+    a = np.asarray(model.a, dtype=np.float64)
+    if np.all(np.roots(a[::-1]).real < 0):
+        return ()
+    return ("the model has a pole with Re >= 0 (unstable): an unstable plant, or a record that "
+            "drifts (a trend, integrating behaviour); check `detrend`, a lower n or a longer "
+            "record before predicting far ahead",)
 
 
 def estimate_outputs(records, **kwargs) -> tuple[Estimate, ...]:

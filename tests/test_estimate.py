@@ -1,5 +1,7 @@
 """`estimate`: search -> SRIVC (-> output error) in one call, on a noisy record (issue 14)."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -37,6 +39,29 @@ def test_estimate_is_consistent_at_10_db(noisy):
     assert np.all((est.std_errors > crb / 2) & (est.std_errors < 2 * crb))
     assert "converged" in est.summary() and "NOT" not in est.summary()
     assert est.start.n == 2 and len(est.search) > 1  # the path is kept
+    assert not any("Re >= 0" in note for note in est.notes)  # a stable estimate: no note
+
+
+def test_estimate_says_when_its_model_is_unstable():
+    """A plant with a slow right-half-plane pole (+0.048; 20 s record: the response grows
+    2.6x): the estimate is unstable and its summary says so and why that may be (before, the
+    plain MFM model came back with status `ok` and nothing said). The note's rule: A(s) with a
+    root of Re >= 0 (an integrator counts)."""
+    from mfmjax._estimate import unstable_note
+
+    plant = Model.from_coefficients([-0.05, 1.0, 1.0], [[1.0]])
+    t = np.arange(400) * 0.05
+    u = (np.sin(1.3 * t) + 0.5 * np.sign(np.sin(0.4 * t)))[:, None]
+    y = np.asarray(mfmjax.simulate(plant, u, dt=0.05))
+    sig = mfmjax.Signals(y + 1e-3 * np.random.default_rng(0).standard_normal(400), u, dt=0.05)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = mfmjax.estimate(sig, n=(2,), N=(3,), M=(3,), h=(2.0,))
+    assert float(est.model.a[0]) < 0
+    assert any("Re >= 0 (unstable)" in note for note in est.notes)
+    assert "Re >= 0 (unstable)" in est.summary()
+    assert unstable_note(Model.from_coefficients([0.0, 1.0, 1.0], [[1.0]]))  # integrator
+    assert unstable_note(TRUE) == ()
 
 
 def test_estimate_with_output_error_polish(noisy):
