@@ -20,7 +20,14 @@ from ._batch import map_pairs
 from ._boundary import check_search
 from ._model import Model
 from ._observers import fit_percent, validation_window
-from ._output_error import OutputErrorFit, free_parameters, output_error, output_error_many, stabilised
+from ._output_error import (
+    OutputErrorFit,
+    free_parameters,
+    is_stable,
+    output_error,
+    output_error_many,
+    stabilised,
+)
 from ._padded import observe_candidate, padded_model
 from ._pytree import replace_fields
 from ._search import SearchResult, plan_search, run_plan
@@ -537,8 +544,7 @@ def _from_search(records, results, *, polish, max_iter, tol) -> list:
 
 def unstable_note(model) -> tuple:
     """A note (in a tuple) when `model`'s A(s) has a root with Re >= 0, else ()."""
-    a = np.asarray(model.a, dtype=np.float64)
-    if np.all(np.roots(a[::-1]).real < 0):
+    if is_stable(model.a):
         return ()
     return ("the model has a pole with Re >= 0 (unstable): an unstable plant, or a record that "
             "drifts (a trend, integrating behaviour); check `detrend`, a lower n or a longer "

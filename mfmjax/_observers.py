@@ -285,7 +285,8 @@ def performance_index(model: Model, signals: Signals, window=None, *, observer_w
 
 
 def masked_fit_percent(y, y_sim, valid):
-    """`fit_percent` of the first `valid` (traced) samples of y and y_sim (a padded window)."""
+    """`fit_percent` (traced) of the first `valid` samples of y and y_sim (a padded window;
+    all of them for `valid` = len(y)); NaN for a constant y."""
     keep = jnp.arange(y.shape[0]) < valid
     mean = jnp.sum(jnp.where(keep, y, 0.0)) / valid
     spread = jnp.linalg.norm(jnp.where(keep, y - mean, 0.0))
@@ -314,5 +315,4 @@ def fit_percent(y, y_sim):
                              "precision is undefined; compare E or the mean square error instead")
         return jnp.asarray(100.0 * (1.0 - float(np.linalg.norm(y - y_sim)) / spread))
     y, y_sim = jnp.asarray(y), jnp.asarray(y_sim)
-    spread = jnp.linalg.norm(y - jnp.mean(y))  # 0 for a constant y: fit undefined, NaN
-    return 100.0 * (1.0 - jnp.linalg.norm(y - y_sim) / jnp.where(spread > 0, spread, jnp.nan))
+    return masked_fit_percent(y, y_sim, y.shape[0])  # a constant y: fit undefined, NaN

@@ -66,9 +66,9 @@ def stabilised(model: Model) -> tuple[Model, bool]:
     (|A| on the imaginary axis and the b's kept), and whether anything changed: an unstable
     MFM start cannot seed a simulation-residual fit on a long window."""
     a = np.asarray(model.a, dtype=np.float64)
-    roots = np.roots(a[::-1])
-    if roots.size == 0 or np.all(roots.real < 0):
+    if is_stable(a):
         return model, False
+    roots = np.roots(a[::-1])
     mirrored = np.where(roots.real >= 0, -np.abs(roots.real) - 1e-9 * np.abs(roots) + 1j * roots.imag,
                         roots)
     a_new = np.real(np.poly(mirrored))[::-1] * a[-1]
@@ -105,12 +105,17 @@ def with_parameters(model: Model, theta):
                        jax.device_put(new) if xp is np else new)
 
 
+def is_stable(a) -> bool:
+    """A(s) (coefficients a_0..a_n, host) has every root in the open left half plane."""
+    return bool(np.all(np.roots(np.asarray(a, dtype=np.float64)[::-1]).real < 0))
+
+
 def _fitted(model: Model, theta: np.ndarray) -> Model:
     """`model` with the output-error parameters `theta` (host): as `srivc`'s, its `theta` is
     the free-parameter vector, the MFM solve's diagnostics (J, J_rel, cond, mf) do not describe
     it and are dropped, and its status says whether A(s) is Hurwitz (`Status.UNSTABLE`)."""
     new = with_parameters(model, theta)
-    stable = bool(np.all(np.roots(np.asarray(new.a, dtype=np.float64)[::-1]).real < 0))
+    stable = is_stable(new.a)
     nan = jax.device_put(np.float64(np.nan))
     return replace_fields(new, theta=jax.device_put(np.asarray(theta, dtype=np.float64)),
                           J=nan, J_rel=nan, cond=nan, mf=None, status=jax.device_put(
