@@ -18,12 +18,11 @@ import numpy as np
 from . import _boundary as _b
 from ._batch import map_pairs
 from ._boundary import check_search
-from ._model import Model
+from ._model import Model, is_stable
 from ._observers import fit_percent, validation_window
 from ._output_error import (
     OutputErrorFit,
     free_parameters,
-    is_stable,
     output_error,
     output_error_many,
     stabilised,

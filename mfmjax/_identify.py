@@ -17,7 +17,8 @@ from ._gram import (
     modulated_signals,
 )
 from ._jit import jit
-from ._model import Model
+from ._linalg import hurwitz
+from ._model import Model, is_stable
 from ._modulating import ModulatingFunction, as_values
 from ._pytree import replace_fields
 from ._quadrature import edge_padded, record_bucket
@@ -131,6 +132,23 @@ def bucketed(signals: Signals):
     return signals, np.int32(T)
 
 
+def flag_unstable(model: Model) -> Model:
+    """`model` with `Status.UNSTABLE` set when A(s) has a root with Re >= 0, as `srivc`,
+    `output_error` and the search's validation set it (on the host when concrete; the Routh
+    test `hurwitz` when traced). Not where a_n vanished or values are non-finite: those bits
+    already say the coefficients are no model."""
+    void = Status.NONFINITE | Status.A_N_ZERO
+    if _concrete(model.status) and model.status.ndim == 0:
+        status = int(model.status)
+        if status & void or is_stable(model.a):
+            return model
+        return replace_fields(model, status=jax.device_put(np.int32(status | Status.UNSTABLE)))
+    unstable = ((model.status & void) == 0) & ~hurwitz(model.a)
+    # int32 throughout: under an eager `jax.vmap`, int32 | (weak int64) crashed XLA (jax 0.10.2)
+    bit = jnp.where(unstable, jnp.int32(Status.UNSTABLE), jnp.int32(0))
+    return replace_fields(model, status=model.status | bit)
+
+
 def identify(
     signals: Signals,
     structure: Structure,
@@ -156,7 +174,8 @@ def identify(
 
     **Returns:** a `Model` with a_n = 1. Problems found in the data (constant input, singular
     reduced Gram, a_n = 0, non-finite values) are reported in `model.status`, never as silent
-    NaN; in eager mode they also warn. Jit-able and vmap-able over `mf.h` (give `h_max`) and
+    NaN, and so is an A(s) with a root in the closed right half plane (`Status.UNSTABLE`: an
+    unstable plant, or noise); in eager mode they also warn. Jit-able and vmap-able over `mf.h` (give `h_max`) and
     over datasets of equal shape.
 
     Settings are values: N, M, h and the delays enter the compiled program as arrays, and the
@@ -173,7 +192,7 @@ def identify(
     length = compiled_length(signals, mf, delay_max)
     padded, end = bucketed(signals.unlabelled())
     model = identify_core(padded, structure, as_values(mf), eta, length, end)
-    model = model.labelled(signals.output_name, signals.input_names)
+    model = flag_unstable(model.labelled(signals.output_name, signals.input_names))
     if _concrete(model.status) and model.status.ndim == 0 and int(model.status) != 0:
         warnings.warn(
             f"identify(): status {describe(int(model.status))} (n={structure.n}, "

@@ -189,6 +189,11 @@ class Model(eqx.Module):
         return out
 
 
+def is_stable(a) -> bool:
+    """A(s) (coefficients a_0..a_n, host) has every root in the open left half plane."""
+    return bool(np.all(np.roots(np.asarray(a, dtype=np.float64)[::-1]).real < 0))
+
+
 def plain_number(x):
     """A float, or an int when it is integral (N and M print as 4, not 4.0)."""
     v = float(np.asarray(x))

@@ -19,7 +19,7 @@ import numpy as np
 from . import _padded as padded
 from ._jit import device, jit
 from ._linalg import expm
-from ._model import Model
+from ._model import Model, is_stable
 from ._optim import USABLE
 from ._pytree import replace_fields
 from ._quadrature import edge_padded, record_bucket
@@ -103,11 +103,6 @@ def with_parameters(model: Model, theta):
     new = (a, tuple(bs), offset)
     return eqx.tree_at(lambda m: (m.a, m.b, m.offset), model,
                        jax.device_put(new) if xp is np else new)
-
-
-def is_stable(a) -> bool:
-    """A(s) (coefficients a_0..a_n, host) has every root in the open left half plane."""
-    return bool(np.all(np.roots(np.asarray(a, dtype=np.float64)[::-1]).real < 0))
 
 
 def _fitted(model: Model, theta: np.ndarray) -> Model:

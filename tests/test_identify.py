@@ -158,3 +158,32 @@ def test_bad_structure():
         Structure(2, (3,))
     with pytest.raises(ValueError, match="n must be"):
         Structure(0)
+
+
+def test_unstable_estimate_is_flagged_eager_jit_and_vmap():
+    """A(s) with a right-half-plane root sets Status.UNSTABLE (as srivc, output_error and the
+    search's validation do); the NumPy reference is np.roots of the returned a. Data from
+    x' = 0.5 x + u (pole at +0.5) and from its mirror x' = -0.5 x + u (stable): noise-free, so
+    the estimates are the true a_0 = -0.5 and +0.5 to 1e-6, far from the boundary."""
+    dt, T = 0.01, 1201
+    t = np.arange(T) * dt
+    u = np.sin(0.9 * t) + 0.5 * np.cos(2.3 * t)
+    st = Structure(1, [0])
+    for a0, flagged in ((-0.5, True), (0.5, False)):
+        true = mfmjax.Model.from_coefficients([a0, 1.0], [[1.0]])
+        sig = Signals(np.asarray(mfmjax.simulate(true, u, None, dt=dt)), u, dt=dt)
+        if flagged:
+            with pytest.warns(UserWarning, match="status unstable"):
+                eager = mfmjax.identify(sig, st, ModulatingFunction(3, 3, 2.0))
+        else:
+            eager = mfmjax.identify(sig, st, ModulatingFunction(3, 3, 2.0))
+        assert np.allclose(np.asarray(eager.a), [a0, 1.0], atol=1e-6)
+        assert (np.roots(np.asarray(eager.a)[::-1]).real >= 0).any() == flagged
+
+        def f(h, sig=sig):
+            return mfmjax.identify(sig, st, ModulatingFunction(3, 3, h, h_max=2.5))
+
+        want = int(mfmjax.Status.UNSTABLE) if flagged else 0
+        assert int(eager.status) == want
+        assert int(jax.jit(f)(2.0).status) == want
+        assert np.asarray(jax.vmap(f)(jnp.asarray([1.5, 2.0])).status).tolist() == [want] * 2
