@@ -9,6 +9,7 @@ import pytest
 
 import mfmjax
 from mfmjax import ModulatingFunction, Signals, Structure
+from mfmjax._search import _engine
 from mfmjax._search._engine import chunk_jit as _chunk_jit
 from mfmjax._status import describe
 from mfmjax.datasets import simulated_experiment, third_order_two_input
@@ -83,15 +84,24 @@ def test_best_by_E_has_true_orders(clean):
         assert r.row(0)["n"] == 3
 
 
-def test_one_compilation_for_many_chunks(noisy):
+def test_one_compilation_for_many_chunks(noisy, monkeypatch):
+    """Chunks of a compiled program run on a thread per core (the first run of a program
+    runs its first chunk alone): every run writes the same columns, bitwise, as one thread."""
     kw = dict(n=(1, 2), N=(3, 4), M=(3, 4), h=(1.0, 1.2, 1.3, 1.5, 1.7), m=[(0,), (0,)],
               chunk_size=2)
-    mfmjax.search(noisy, **kw)  # 5 (h, delays) settings -> 3 chunks
+    first = mfmjax.search(noisy, **kw)  # 5 (h, delays) settings -> 3 chunks
     before = _chunk_jit._cached._cache_size()
     calls = []
     res = mfmjax.search(noisy, progress=lambda d, t: calls.append((d, t)), **kw)
     assert _chunk_jit._cached._cache_size() == before
     assert calls[-1] == (5, 5) and len(calls) == 3 and len(res) == 5 * 4 * 2
+    assert [d for d, _ in calls] == sorted(d for d, _ in calls)  # done only grows
+    monkeypatch.setattr(_engine, "WORKERS", 1)
+    one = mfmjax.search(noisy, **kw)
+    whole = mfmjax.search(noisy, **dict(kw, chunk_size=5))  # one chunk: no threads
+    for key, col in whole.columns.items():
+        for other in (first, res, one):
+            np.testing.assert_array_equal(other.columns[key], col, err_msg=key)
 
 
 def test_bad_candidate_is_flagged_not_fatal(clean):

@@ -23,7 +23,9 @@ Work sharing:
 grid, memory flat in the candidate count; results go straight into preallocated columns).
 Each chunk's setting axis is sharded over all `jax.devices()` with a 1-D mesh
 (`NamedSharding`); within a device, the signal-sized work (moments, H) runs one setting at a
-time (`lax.map`: cache-sized) and the small solves are batched over the whole chunk.
+time (`lax.map`: cache-sized) and the small solves in blocks of `SOLVE_BLOCK` candidates.
+With one device, the chunks of a compiled program run on a thread per core (a compiled chunk
+runs its loops on one core); a program's first run runs its first chunk alone, which compiles.
 """
 
 from ._engine import run_plan as run_plan

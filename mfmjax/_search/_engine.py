@@ -4,13 +4,16 @@ chunk."""
 
 from __future__ import annotations
 
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._batch import WORKERS
 from .._identify import FEEDTHROUGH_STEPS
 from .._jit import RUN_ONCE_OPTIONS, jit
 from .._quadrature import edge_padded
@@ -161,6 +164,12 @@ def place(x: np.ndarray, sharding):
     return jax.make_array_from_callback(x.shape, sharding, lambda idx: x[idx])
 
 
+# per program that ran in this process (function, static part, argument shapes): the shape
+# and dtype of every output column beyond the candidate axis, so a later run allocates them
+# before its chunks start (on threads)
+_COLUMNS: dict = {}
+
+
 def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=False):
     """Evaluate a plan's grid on `signals` (same length and layout as the plan's record).
     With `records` (a list of `Signals` of that layout, e.g. Monte Carlo realisations) every
@@ -181,8 +190,18 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
     ys, us = (np.stack([edge_padded(np.asarray(x), pad) for x in xs])  # NumPy: no program
               for xs in ([r.y for r in batch], [r.u for r in batch]))
     sig = eqx.tree_at(lambda s: (s.y, s.u), signals.unlabelled(), (ys[0], us[0]))
-    cols, times = [{} for _ in batch], []
-    for c0 in range(0, len(hd), chunk):
+    if len(batch) == 1:  # one record: the program `search` uses
+        quick = once and len(hd) <= chunk and not static.simulate
+        fn = chunk_jit_once if quick else chunk_jit
+    else:
+        fn = chunk_records_jit
+    program = (fn, static, chunk, tuple(np.shape(x) for x in jax.tree.leaves(
+        (sig, ys, us, plan.eta, plan.cand, plan.nm, plan.where))))
+    cols, times = [{} for _ in batch], {}
+    starts = list(range(0, len(hd), chunk))
+    done, lock = [0], threading.Lock()
+
+    def run_chunk(c0):
         idx = list(range(c0, min(c0 + chunk, len(hd))))
         real = len(idx)
         idx = idx + [idx[-1]] * (chunk - real)  # pad the last chunk: same shapes
@@ -194,11 +213,9 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
         t0 = time.perf_counter()
         args = (static, plan.eta, g, plan.cand, plan.nm, plan.where)
         if len(batch) == 1:  # one record: the program `search` uses
-            quick = once and len(hd) <= chunk and not static.simulate
-            fn = chunk_jit_once if quick else chunk_jit
             res = [jax.block_until_ready(fn(sig, *args))]
         else:
-            out = jax.device_get(chunk_records_jit(sig, ys, us, *args))
+            out = jax.device_get(fn(sig, ys, us, *args))
             res = [jax.tree.map(lambda x, r=r: x[r], out) for r in range(len(records))]
         if jax.process_count() > 1:  # multi-host: every process gets every candidate
             from jax.experimental import multihost_utils
@@ -211,12 +228,36 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
                     col[key] = np.empty((len(hd) * Cg,) + val.shape[2:], val.dtype)
                 col[key][c0 * Cg : (c0 + real) * Cg] = val.reshape((-1,) + val.shape[2:])
         del res
-        times.append(time.perf_counter() - t0)
+        times[c0] = time.perf_counter() - t0
         if progress is not None:
-            progress(min(c0 + chunk, len(hd)), len(hd))
+            with lock:  # in order of completion: `done` only grows
+                done[0] += real
+                progress(done[0], len(hd))
+
+    t_start = time.perf_counter()
+    layout = _COLUMNS.get(program)
+    if layout is None:  # a new program: its first chunk alone (it compiles; columns allocated)
+        run_chunk(starts[0])
+        rest = starts[1:]
+        _COLUMNS[program] = [{k: (v.shape[1:], v.dtype) for k, v in col.items()} for col in cols]
+    else:  # it ran before: every chunk may run at once
+        for col, lay in zip(cols, layout):
+            col.update({k: np.empty((len(hd) * Cg,) + shp, dt) for k, (shp, dt) in lay.items()})
+        rest = starts
+    if len(rest) > 1 and plan.sharding.num_devices == 1 and jax.process_count() == 1:
+        # the other chunks on a thread per core: a compiled chunk runs its loops on one core
+        # and releases the GIL (several devices: the chunk is sharded over them instead)
+        with ThreadPoolExecutor(max_workers=min(WORKERS, len(rest))) as pool:
+            list(pool.map(run_chunk, rest))
+    else:
+        for c0 in rest:
+            run_chunk(c0)
+    wall = time.perf_counter() - t_start
+    times = [times[c0] for c0 in starts]
     # the first chunk compiles: its excess over a typical chunk is the compile time
     typical = float(np.median(times[1:])) if len(times) > 1 else 0.0
-    t_compile, t_run = max(times[0] - typical, 0.0), sum(times) - max(times[0] - typical, 0.0)
+    t_compile = max(times[0] - typical, 0.0)
+    t_run = wall - t_compile
     n_set = len(hd)
     out = []
     for col, rec in zip(cols, batch):

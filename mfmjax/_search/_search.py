@@ -51,8 +51,9 @@ def search(
       `"J"` score is available): the pure equation-error search.
     - `chunk_size`: (h, delays) settings per compiled chunk (at most the grid's; rounded up to
       a multiple of the device count), each with every (N, M) and structure: memory grows with
-      it, not with the grid; `progress(done, total)` is
-      called after each chunk with counts of (h, delays) settings.
+      it (times the chunks in flight: one per core), not with the grid; `progress(done,
+      total)` is called after each chunk with counts of (h, delays) settings (from a worker
+      thread when chunks run on several cores).
 
     **Returns:** a `SearchResult`.
     """
