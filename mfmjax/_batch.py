@@ -14,6 +14,7 @@ import numpy as np
 
 from ._jit import jit
 from ._pytree import replace_fields
+from ._signals import Signals
 
 
 def stack(trees):
@@ -28,6 +29,27 @@ def unstack(tree) -> list:
     host = jax.device_get(tree)
     count = jax.tree.leaves(host)[0].shape[0]
     return jax.device_put([jax.tree.map(lambda x, i=i: x[i], host) for i in range(count)])
+
+
+def as_records(fn: str, signals) -> tuple[list, bool]:
+    """([records], single) for function `fn`: one `Signals`, or a non-empty list of them of one
+    layout (a batch of records; ValueError naming the first record that differs)."""
+    if isinstance(signals, Signals):
+        return [signals], True
+    if not isinstance(signals, list | tuple) or not signals or \
+            not all(isinstance(r, Signals) for r in signals):
+        raise TypeError(f"{fn}(): signals must be a Signals or a list of Signals of one "
+                        f"layout (a batch of records), got {type(signals).__name__}")
+    first = signals[0]
+    layout = lambda r: (r.n_samples, r.n_inputs, r.dt, r.t0, r.intersample, r.smooth,  # noqa: E731
+                        r.offset, r.output_rule)
+    for i, r in enumerate(signals[1:], 1):
+        if layout(r) != layout(first):
+            raise ValueError(
+                f"{fn}(): record {i} differs from record 0 in length, inputs, dt, t0, "
+                "intersample, smoothing, offset or output rule; a batch needs records of one "
+                "layout (give offset=True or False explicitly so the data do not decide it)")
+    return list(signals), False
 
 
 BATCH = 8  # pairs per mapped call: a batch runs in chunks of BATCH and single pairs

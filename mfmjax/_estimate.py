@@ -16,7 +16,7 @@ import equinox as eqx
 import numpy as np
 
 from . import _boundary as _b
-from ._batch import map_pairs
+from ._batch import as_records, map_pairs
 from ._boundary import check_search
 from ._model import Model, is_stable
 from ._observers import fit_percent, validation_window
@@ -125,7 +125,7 @@ def estimate(
     `selection`, `holdout` and every stage's result. A stage that did not converge says so
     in `converged` and `summary()`, and warns.
     """
-    records, single = _as_records(signals)
+    records, single = as_records("estimate", signals)
     if polish is not None and not isinstance(polish, bool):
         raise TypeError(f"estimate(): polish must be True or False (or None: decided on the "
                         f"hold-out data), got {polish!r}")
@@ -161,26 +161,6 @@ def estimate(
                           "estimate is its best iterate and its standard errors are not "
                           "trustworthy: check the grid or raise max_iter", stacklevel=2)
     return outs[0] if single else tuple(outs)
-
-
-def _as_records(signals):
-    """([records], single): one `Signals`, or a non-empty list of them of one layout."""
-    if isinstance(signals, Signals):
-        return [signals], True
-    if not isinstance(signals, list | tuple) or not signals or \
-            not all(isinstance(r, Signals) for r in signals):
-        raise TypeError("estimate(): signals must be a Signals or a list of Signals of one "
-                        f"layout (a batch of records), got {type(signals).__name__}")
-    first = signals[0]
-    layout = lambda r: (r.n_samples, r.n_inputs, r.dt, r.t0, r.intersample, r.smooth,  # noqa: E731
-                        r.offset, r.output_rule)
-    for i, r in enumerate(signals[1:], 1):
-        if layout(r) != layout(first):
-            raise ValueError(
-                f"estimate(): record {i} differs from record 0 in length, inputs, dt, t0, "
-                "intersample, smoothing, offset or output rule; a batch needs records of one "
-                "layout (give offset=True or False explicitly so the data do not decide it)")
-    return list(signals), False
 
 
 def _reason(est: Estimate) -> str:

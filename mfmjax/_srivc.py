@@ -52,7 +52,7 @@ from jax.custom_batching import custom_vmap
 
 from . import _boundary as _b
 from . import _padded as padded
-from ._batch import map_pairs
+from ._batch import as_records, map_pairs
 from ._jit import array_jit
 from ._linalg import expm, hurwitz, solve
 from ._model import Model
@@ -361,7 +361,7 @@ def _fit(signals: Signals, model: Model, out: dict, shape: tuple[int, int]) -> S
     return fit  # concrete: NumPy arrays, as `OutputErrorFit` (a put back cost 1 ms a fit)
 
 
-def srivc(signals: Signals, model: Model, *, max_iter: int = 30, tol: float = 1e-8) -> SrivcFit:
+def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
     r"""SRIVC estimate (module docstring) started from `model` (e.g. the MFM estimate).
 
     Orders, offset term and delays come from `model`; intersample rules and data from
@@ -374,11 +374,21 @@ def srivc(signals: Signals, model: Model, *, max_iter: int = 30, tol: float = 1e
     `padded_model`): new data, starts, dt, `max_iter` and `tol` are values too.
     Works under `jax.jit` and `jax.vmap` (over stacked `Signals` and `Model`s of equal shape).
 
-    **Arguments:** `signals` (y (T,), u (T, K)), `model` (the start), `max_iter`, `tol`.
+    **A batch of records** (Monte Carlo realisations, repeated experiments): `signals` a list of
+    `Signals` of one layout and `model` one start or a list of them (one per record). Chunks of
+    records with one structure run in one compiled call each, on a thread per core
+    (`map_pairs`); one warning says how many fits did not converge. Eager only (under `jit`,
+    `vmap` the single-record call).
 
-    **Returns:** `SrivcFit`; its `model` is a `Model` (a, b, offset, delays) whose `status`
-    has `Status.UNSTABLE` when the returned A is not Hurwitz.
+    **Arguments:** `signals` (y (T,), u (T, K), or a list), `model` (the start, or a list),
+    `max_iter`, `tol`.
+
+    **Returns:** `SrivcFit` (a list of them for a list of records); its `model` is a `Model`
+    (a, b, offset, delays) whose `status` has `Status.UNSTABLE` when the returned A is not
+    Hurwitz.
     """
+    if not isinstance(signals, Signals):
+        return _srivc_batch(signals, model, max_iter, tol)
     max_iter, tol = _checked(signals, model, max_iter, tol)
     traced = _b.is_traced(signals.y) or _b.is_traced(model.a) or _b.is_traced(max_iter)
     # padded to (n, largest m_k): each padded coefficient costs a step of the elimination in
@@ -425,21 +435,47 @@ def _checked(signals: Signals, model: Model, max_iter, tol):
     return max_iter, tol
 
 
-def srivc_many(records, models, *, n_max: int, max_iter: int = 30, tol: float = 1e-8) -> list:
-    """`srivc(records[i], models[i])` for every pair (`Signals` of one layout, starts of order
-    <= `n_max`): all structures zero-padded to `n_max` (`padded_model`), so every chunk of pairs
-    runs in one compiled call whatever its structures (`map_pairs`). No warnings: the caller
-    reads `status`. An entry is None where `srivc` would raise ValueError."""
-    starts, live = [], []
+def srivc_many(records, models, *, n_max: int | None = None, max_iter: int = 30,
+               tol: float = 1e-8) -> list:
+    """`srivc(records[i], models[i])` for every pair (`Signals` of one layout), each chunk of
+    pairs of one padded shape in one compiled call (`map_pairs`). `n_max`: every structure
+    zero-padded to order `n_max` (`padded_model`: one program whatever the structures); None:
+    each to its own order and largest numerator order, as `srivc` pads one. No warnings: the
+    caller reads `status`. An entry is None where `srivc` would raise ValueError."""
+    starts, live, shapes = [], [], []
     for i, (signals, model) in enumerate(zip(records, models)):
         try:
             _checked(signals, model, max_iter, tol)
         except ValueError:
             continue
-        starts.append(padded.padded_model(model, n_max))
+        n, w = (model.n, max(model.m, default=0) + 1) if n_max is None else (n_max, n_max + 1)
+        starts.append(padded.padded_model(model, n, w - 1))
         live.append(i)
+        shapes.append((n, w))
     outs = map_pairs(padded_fit, [records[i] for i in live], starts, max_iter=max_iter, tol=tol)
     fits = [None] * len(models)
-    for i, out in zip(live, outs):
-        fits[i] = None if out is None else _fit(records[i], models[i], out, (n_max, n_max + 1))
+    for i, out, shape in zip(live, outs, shapes):
+        fits[i] = None if out is None else _fit(records[i], models[i], out, shape)
+    return fits
+
+
+def _srivc_batch(signals, model, max_iter, tol) -> list:
+    """`srivc` on a list of records (its docstring): checked like one record each."""
+    records, _ = as_records("srivc", signals)
+    models = list(model) if isinstance(model, list | tuple) else [model] * len(records)
+    if len(models) != len(records):
+        raise ValueError(f"srivc(): {len(records)} records but {len(models)} start models; give "
+                         "one model for all records or one per record")
+    for r, m in zip(records, models):
+        max_iter, tol = _checked(r, m, max_iter, tol)
+        if _b.is_traced(r.y) or _b.is_traced(m.a):
+            raise TypeError("srivc(): a list of records is eager only; under jax.jit, "
+                            "jax.vmap the single-record call over stacked Signals and Models")
+    fits = srivc_many(records, models, max_iter=max_iter, tol=tol)
+    bad = [i for i, f in enumerate(fits) if f is None or int(f.status) != 0]
+    if bad:
+        warnings.warn(f"srivc(): {len(bad)} of {len(fits)} fits stopped without converging "
+                      f"(records {bad[:10]}{'...' if len(bad) > 10 else ''}); each returned the "
+                      "best iterate by simulation error, with the reason in its status (None: "
+                      "the fit could not run)", stacklevel=3)
     return fits

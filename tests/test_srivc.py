@@ -205,6 +205,39 @@ def test_vmap_equals_loop_and_no_recompilation():
     assert bool(single.converged)
 
 
+def test_list_of_records_equals_one_at_a_time():
+    """`srivc(list, starts)`: chunks of records on threads; each fit equals the direct fit of
+    its record (another batch program on the same padded shape: rounding level, 1e-10 as in
+    the vmap test); one start for all records or one per record; a fit that did not converge
+    is counted in one warning; a bad list is refused at the boundary."""
+    recs = [_record(seed=s, start_scale=1.05 + 0.02 * s)[1:] for s in range(10)]
+    sigs, starts = [r[0] for r in recs], [r[1] for r in recs]
+    loop = [mfmjax.srivc(s, m) for s, m in recs]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # all converge: no warning
+        fits = mfmjax.srivc(sigs, starts)
+        shared = mfmjax.srivc(sigs, starts[0])
+    assert len(fits) == len(shared) == 10
+    for f, g, one in zip(fits, shared, loop):
+        assert np.allclose(np.asarray(f.theta), np.asarray(one.theta), rtol=1e-10, atol=0)
+        assert int(f.iterations) == int(one.iterations) and bool(f.converged)
+        # from another start: the same fixed point, within the stopping tolerance (tol 1e-8)
+        assert np.allclose(np.asarray(g.theta), np.asarray(one.theta), rtol=1e-8, atol=0)
+    bad = mfmjax.Model.from_coefficients([-0.8, 1.2, 1.0], [[0.5, 0.3], [0.7]], offset=0.2,
+                                         delays=WHOLE, intersample=MODES)  # a pole at s = +0.5
+    with pytest.warns(UserWarning, match="1 of 3 fits stopped without converging \\(records \\[1\\]"):
+        mixed = mfmjax.srivc(sigs[:3], [starts[0], bad, starts[2]])
+    assert int(mixed[1].status) & SrivcStatus.UNSTABLE_FILTER and mixed[0].converged
+    with pytest.raises(ValueError, match="srivc\\(\\): 3 records but 2 start models"):
+        mfmjax.srivc(sigs[:3], starts[:2])
+    short = Signals(np.asarray(sigs[0].y)[:300], np.asarray(sigs[0].u)[:300], dt=DT,
+                    intersample=MODES, offset=True)
+    with pytest.raises(ValueError, match="srivc\\(\\): record 1 differs from record 0"):
+        mfmjax.srivc([sigs[0], short], starts[0])
+    with pytest.raises(TypeError, match="srivc\\(\\): signals must be a Signals or a list"):
+        mfmjax.srivc([], starts[0])
+
+
 def test_unstable_start_gives_status_not_nan(noisy):
     sig, start = noisy
     bad = mfmjax.Model.from_coefficients([-0.8, 1.2, 1.0], [[0.5, 0.3], [0.7]], offset=0.2,
