@@ -15,7 +15,8 @@ from the same MFM estimate. Per method: largest normalised bias |mean - true| / 
 parameters, std / CRB (min, median, max; `cramer_rao` at the truth and noise level), failures
 (non-finite, not converged, any parameter more than 10 CRB std off), ms per fit warm, compile
 s, ratios to the NumPy SRIVC peer; then the whole batch of realisations through `jax.vmap(srivc)`
-(one compiled call) against as many sequential NumPy SRIVC fits; then (issue 14 item 4)
+(one compiled call) and as a list (`srivc(records, starts)`: chunks on a thread per core)
+against as many sequential NumPy SRIVC fits; then (issue 14 item 4)
 `mfmjax.estimate` with its default selection and stages on the whole batch of records (a list
 of `Signals`: every stage one compiled call per structure), over the grid `estimate_grid`
 (orders n-1..n, numerator orders m_k..m_k+1 per input, the system's N and M, h and 0.75 h):
@@ -190,13 +191,20 @@ def run_system(name, spec, snr_db, runs, with_estimate=True):
     fb, t_batch = _timed(lambda: batched(bs, bm))
     same = float(np.max(np.abs(np.asarray(fb.theta) - np.asarray(est["srivc"]))
                         / np.abs(truth)))
+    # the list of records: chunks of records in one compiled call each, on a thread per core
+    fl, l_first = _timed(lambda: mfmjax.srivc(sigs, starts))
+    fl, t_list = _timed(lambda: mfmjax.srivc(sigs, starts))
+    same_list = float(np.max(np.abs(np.asarray([f.theta for f in fl]) - np.asarray(est["srivc"]))
+                             / np.abs(truth)))
     a = time.perf_counter()
     for sig, m0 in zip(sigs, starts):
         srivc_peer.fit(sig, m0)
     t_seq = time.perf_counter() - a
     out["batch"] = {"records": runs, "vmap_s": t_batch, "vmap_compile_s": t_first - t_batch,
                     "numpy_sequential_s": t_seq, "speedup": t_seq / t_batch,
-                    "max_rel_diff_vs_single": same}
+                    "max_rel_diff_vs_single": same, "list_s": t_list,
+                    "list_compile_s": l_first - t_list, "list_speedup": t_seq / t_list,
+                    "list_max_rel_diff_vs_single": same_list}
     if with_estimate:
         out["estimate"] = run_estimate(spec, true, sigs, crb, truth)
         out["estimate"]["vs_numpy_srivc_sequential"] = t_seq / out["estimate"]["batch_s_warm"]
@@ -225,6 +233,9 @@ def print_case(r):
           f"{b['vmap_compile_s']:.1f} s) vs {b['numpy_sequential_s']:.2f} s sequential NumPy "
           f"SRIVC: {b['speedup']:.1f}x (max |batched - single| / |true| = "
           f"{b['max_rel_diff_vs_single']:.1e})")
+    print(f"  the list srivc(records, starts) (threads, one per core): {b['list_s']:.2f} s warm "
+          f"(compile {b['list_compile_s']:.1f} s): {b['list_speedup']:.1f}x (max |list - "
+          f"single| / |true| = {b['list_max_rel_diff_vs_single']:.1e})")
     if "estimate" in r:
         e = r["estimate"]
         lo, med, hi = e["std_over_crb"]
