@@ -175,8 +175,8 @@ def identify(
     **Returns:** a `Model` with a_n = 1. Problems found in the data (constant input, singular
     reduced Gram, a_n = 0, non-finite values) are reported in `model.status`, never as silent
     NaN, and so is an A(s) with a root in the closed right half plane (`Status.UNSTABLE`: an
-    unstable plant, or noise); in eager mode they also warn. Jit-able and vmap-able over `mf.h` (give `h_max`) and
-    over datasets of equal shape.
+    unstable plant, or noise); in eager mode they also warn. Jit-able and vmap-able over
+    `mf.h` (give `h_max`) and over datasets of equal shape.
 
     Settings are values: N, M, h and the delays enter the compiled program as arrays, and the
     kernel length is bucketed (`kernel_bucket`), so a new setting whose h + delays fit the
