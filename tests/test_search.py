@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import mfmjax
-from mfmjax import ModulatingFunction, Signals, Structure
+from mfmjax import ModulatingFunction, Signals, Structure, _batch
 from mfmjax._search import _engine
 from mfmjax._search._engine import chunk_jit as _chunk_jit
 from mfmjax._status import describe
@@ -96,7 +96,7 @@ def test_one_compilation_for_many_chunks(noisy, monkeypatch):
     assert _chunk_jit._cached._cache_size() == before
     assert calls[-1] == (5, 5) and len(calls) == 3 and len(res) == 5 * 4 * 2
     assert [d for d, _ in calls] == sorted(d for d, _ in calls)  # done only grows
-    monkeypatch.setattr(_engine, "WORKERS", 1)
+    monkeypatch.setattr(_batch, "WORKERS", 1)
     one = mfmjax.search(noisy, **kw)
     whole = mfmjax.search(noisy, **dict(kw, chunk_size=5))  # one chunk: no threads
     for key, col in whole.columns.items():
@@ -175,8 +175,9 @@ print(json.dumps(res.to_dict()))
 
 
 def test_equation_error_only_mode(noisy):
-    # two chunks, so that both run at the default compile options (a one-chunk J-only grid is
-    # compiled at level 0: rounding-equal, test_one_chunk_J_search_is_compiled_for_compile_time)
+    # two chunks, so that both run at the default compile options (a J-only grid that fits in
+    # one chunk is compiled at level 0: rounding-equal,
+    # test_one_chunk_J_search_is_compiled_for_compile_time)
     kw = dict(n=(1, 2, 3), N=(4,), M=(4,), h=(1.5, 1.7), m=[(0, 1), (0,)], chunk_size=1)
     full = mfmjax.search(noisy, score="J", **kw)
     fast = mfmjax.search(noisy, score="J", simulate=False, **kw)
@@ -187,22 +188,22 @@ def test_equation_error_only_mode(noisy):
 
 
 def test_one_chunk_J_search_is_compiled_for_compile_time(noisy, monkeypatch):
-    """`search` runs a one-chunk, J-only grid through the program compiled at XLA's backend
-    level 0 (`RUN_ONCE_OPTIONS`: it runs once) and a grid of several chunks through the default
-    one; both give the same candidates to rounding (the same arithmetic, other instruction
-    selection: 1e-12 relative norm-wise on theta and J, equal rankings)."""
-    from mfmjax._search import _engine
-
+    """`search` runs a J-only grid that fits in one chunk (at most `chunk_size` settings,
+    split over the cores: one chunk per core) through the program compiled at XLA's backend
+    level 0 (`RUN_ONCE_OPTIONS`: it runs once) and a grid of several chunks through the
+    default one; both give the same candidates to rounding (the same arithmetic, other
+    instruction selection: 1e-12 relative norm-wise on theta and J, equal rankings)."""
+    monkeypatch.setattr(_batch, "WORKERS", 2)  # two cores, whatever the machine
     used = []
     for name in ("chunk_jit", "chunk_jit_once"):
         fn = getattr(_engine, name)
         monkeypatch.setattr(_engine, name, lambda *a, _fn=fn, _n=name: used.append(_n) or _fn(*a))
-    kw = dict(n=(1, 2, 3), N=(4,), M=(4, 5), h=(1.5, 1.7), m=[(0, 1), (0,)], score="J",
+    kw = dict(n=(1, 2, 3), N=(4,), M=(4, 5), h=(1.5, 1.7, 1.9), m=[(0, 1), (0,)], score="J",
               simulate=False)
-    once = mfmjax.search(noisy, **kw)
-    assert used == ["chunk_jit_once"]
-    chunked = mfmjax.search(noisy, chunk_size=1, **kw)  # two chunks: the default program
-    assert used[1:] == ["chunk_jit", "chunk_jit"]
+    once = mfmjax.search(noisy, **kw)  # 3 settings: chunks of 2 (one padded), one per core
+    assert used == ["chunk_jit_once"] * 2
+    chunked = mfmjax.search(noisy, chunk_size=1, **kw)  # three chunks: the default program
+    assert used[2:] == ["chunk_jit"] * 3
     for key in ("theta", "J"):
         a, b = np.asarray(once.columns[key]), np.asarray(chunked.columns[key])
         assert np.max(np.abs(a - b)) <= 1e-12 * np.max(np.abs(b)), key

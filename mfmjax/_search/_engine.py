@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._batch import WORKERS
+from .. import _batch
 from .._identify import FEEDTHROUGH_STEPS
 from .._jit import RUN_ONCE_OPTIONS, jit
 from .._quadrature import edge_padded
@@ -190,15 +190,17 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
     ys, us = (np.stack([edge_padded(np.asarray(x), pad) for x in xs])  # NumPy: no program
               for xs in ([r.y for r in batch], [r.u for r in batch]))
     sig = eqx.tree_at(lambda s: (s.y, s.u), signals.unlabelled(), (ys[0], us[0]))
+    starts = list(range(0, len(hd), chunk))
+    threaded = plan.sharding.num_devices == 1 and jax.process_count() == 1
     if len(batch) == 1:  # one record: the program `search` uses
-        quick = once and len(hd) <= chunk and not static.simulate
+        # a grid that fits in one chunk (`plan_search` splits it over the cores)
+        quick = once and plan.small and not static.simulate
         fn = chunk_jit_once if quick else chunk_jit
     else:
         fn = chunk_records_jit
     program = (fn, static, chunk, tuple(np.shape(x) for x in jax.tree.leaves(
         (sig, ys, us, plan.eta, plan.cand, plan.nm, plan.where))))
     cols, times = [{} for _ in batch], {}
-    starts = list(range(0, len(hd), chunk))
     done, lock = [0], threading.Lock()
 
     def run_chunk(c0):
@@ -244,10 +246,10 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
         for col, lay in zip(cols, layout):
             col.update({k: np.empty((len(hd) * Cg,) + shp, dt) for k, (shp, dt) in lay.items()})
         rest = starts
-    if len(rest) > 1 and plan.sharding.num_devices == 1 and jax.process_count() == 1:
+    if len(rest) > 1 and threaded:
         # the other chunks on a thread per core: a compiled chunk runs its loops on one core
         # and releases the GIL (several devices: the chunk is sharded over them instead)
-        with ThreadPoolExecutor(max_workers=min(WORKERS, len(rest))) as pool:
+        with ThreadPoolExecutor(max_workers=min(_batch.WORKERS, len(rest))) as pool:
             list(pool.map(run_chunk, rest))
     else:
         for c0 in rest:

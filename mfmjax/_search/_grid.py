@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _batch
 from .._gram import MIN_VALID
 from .._modulating import MAX_DEGREE
 from .._observers import validation_window
@@ -97,6 +98,7 @@ class Plan(NamedTuple):
     where: dict  # values, not shapes: "segments" (S, 2) identification windows [start, end),
     # the validation window's "v_start" and length "v_valid" and the observer's length "ob", in
     # samples (a new fold, or a shorter window under `v_bound`, reuses the compiled chunk)
+    small: bool = False  # the grid fits in one chunk (split over the cores: one round)
 
 
 def identification_segments(signals: Signals, identify, fn: str = "search") -> tuple:
@@ -257,13 +259,18 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     )
     mesh = device_mesh()
     n_dev = mesh.devices.size
-    chunk = n_dev * math.ceil(min(chunk_size, len(hd)) / n_dev)  # no padding beyond the grid
+    small = len(hd) <= chunk_size
+    if n_dev == 1 and small:  # a grid of one chunk: split over the cores, whose threads run
+        # the chunks at once once the program is compiled (`run_plan`)
+        chunk = math.ceil(len(hd) / min(_batch.WORKERS, len(hd)))
+    else:
+        chunk = n_dev * math.ceil(min(chunk_size, len(hd)) / n_dev)  # no padding beyond the grid
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("c"))
     where = jax.device_put({"segments": np.asarray(segments, dtype=np.int32),
                             "v_start": np.int32(v0), "v_valid": np.int32(v_len),
                             "ob": np.int32(ob)})
     return Plan(static, eta, structs, cand, nm, hd, combos, (col_nm, col_struct),
-                chunk, sharding, score, signals.n_samples, T_pad, K, where)
+                chunk, sharding, score, signals.n_samples, T_pad, K, where, small)
 
 
 @functools.lru_cache(maxsize=128)
