@@ -263,3 +263,19 @@ def test_best_by_J_on_noise_free_data_has_true_orders(clean):
     c = res.columns
     assert np.min(c["J"][c["n"] > 3]) < np.min(c["J"][c["n"] == 3])  # the trap is real
     assert (res.row(0)["n"], res.row(0)["m"]) == (3, [1, 0])
+
+
+def test_small_grid_is_split_over_the_cores_for_search_only(noisy, monkeypatch):
+    """A grid that fits in one chunk is cut into one chunk per core when `search` plans it
+    (its later calls run on every core); other callers (the on-line identifier, `estimate`)
+    plan grids of many sizes and keep one chunk each, so that sizes do not multiply the
+    compiled chunk shapes."""
+    from mfmjax._search import plan_search
+
+    monkeypatch.setattr(_batch, "WORKERS", 2)
+    kw = dict(n=(1, 2), N=(3,), M=(3,), h=(1.0, 1.2, 1.3), m=None, delays=None, score="J",
+              validate=None, observer_window=None, eta=None, chunk_size=8, simulate=False)
+    for split, chunk in ((False, 3), (True, 2)):
+        plan = plan_search(noisy, split=split, **kw)
+        assert plan.small and plan.chunk == chunk and len(plan.hd) == 3
+    assert not plan_search(noisy, split=True, **dict(kw, chunk_size=2)).small

@@ -124,7 +124,8 @@ def identification_segments(signals: Signals, identify, fn: str = "search") -> t
 
 def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
           chunk_size, simulate, span_bound: float = 0.0, identify=None,
-          n_padded: int | None = None, v_bound: int | None = None) -> Plan:
+          n_padded: int | None = None, v_bound: int | None = None,
+          split: bool = False) -> Plan:
     """Check the grid against the record's shape and build the static parts of `search`.
 
     The record is padded to `n_padded` samples (default `record_bucket`) and the validation
@@ -132,7 +133,9 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     padding counts (the Gram integral and E end with the data), so records and windows of
     every length in a bucket share one compilation. `span_bound` (time units) pads the
     kernels to at least this h + delay, so that plans with different delays share one (the
-    on-line identifier)."""
+    on-line identifier). `split`: a grid that fits in one chunk is cut into one chunk per
+    core (`search`; a caller that plans grids of many sizes keeps one chunk each, so that
+    sizes do not multiply the compiled chunk shapes)."""
     if not isinstance(signals, Signals):
         raise TypeError("search(): signals must be a Signals")
     if score not in SCORES:
@@ -260,8 +263,8 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     mesh = device_mesh()
     n_dev = mesh.devices.size
     small = len(hd) <= chunk_size
-    if n_dev == 1 and small:  # a grid of one chunk: split over the cores, whose threads run
-        # the chunks at once once the program is compiled (`run_plan`)
+    if split and n_dev == 1 and small:  # a grid of one chunk: split over the cores, whose
+        # threads run the chunks at once once the program is compiled (`run_plan`)
         chunk = math.ceil(len(hd) / min(_batch.WORKERS, len(hd)))
     else:
         chunk = n_dev * math.ceil(min(chunk_size, len(hd)) / n_dev)  # no padding beyond the grid
