@@ -133,6 +133,8 @@ def transport_delay_estimate(y, u, end: int, guess: float, dt: float = 1.0) -> d
     path, the sensor lag excluded: the quantity the simulator calls its delay (x/v).
     **Returns:** {"delay", "peclet", "crown", "gain1", "window"}; delay NaN with too little
     history or when the best delay of the 5 s grid is one of its ends (no interior minimum)."""
+    from scipy import fft as sfft
+
     fn = "transport_delay_estimate()"
     if not (isinstance(guess, (int, float)) and math.isfinite(guess) and guess > 0):
         raise ValueError(f"{fn}: guess must be a finite delay > 0 s (got {guess!r})")
@@ -157,25 +159,33 @@ def transport_delay_estimate(y, u, end: int, guess: float, dt: float = 1.0) -> d
         return x - Q @ (Q.T @ x)
 
     yr = proj(yw)
-    nf = 1 << math.ceil(math.log2(w + 2 * hist))
-    F1 = np.fft.rfft(u1, nf)
-    F2 = [np.fft.rfft(_lag(u2, T, dt), nf) for T in TRANSIT_CROWN]
+    nf = sfft.next_fast_len(w + 2 * hist, real=True)  # linear convolutions: no wrap-around
+    F1 = sfft.rfft(u1, nf)
+    F2 = [sfft.rfft(_lag(u2, T, dt), nf) for T in TRANSIT_CROWN]
+    eps2 = 2 * np.finfo(np.float64).eps  # lstsq's default cut-off for a 2 x 2 system
 
-    def fit(theta, pe):  # (sse, crown, g1) of the best crown lag
-        k = transit_kernel(theta, pe, hist, dt)
-        x1 = proj(np.fft.irfft(F1 * np.fft.rfft(k, nf), nf)[hist : hist + w])
-        S = np.fft.rfft(1.0 - np.cumsum(k), nf) * dt
-        best = (math.inf, math.nan, math.nan)
+    def fits(pairs):  # (sse, crown, g1) of the best crown lag of each (theta, Pe), batched
+        k = np.stack([transit_kernel(th, pe, hist, dt) for th, pe in pairs])
+        x1 = proj(sfft.irfft(F1 * sfft.rfft(k, nf), nf)[:, hist : hist + w].T).T
+        S = sfft.rfft(1.0 - np.cumsum(k, axis=1), nf) * dt
+        best = np.full((len(pairs), 3), [math.inf, math.nan, math.nan])
         for Tc, F in zip(TRANSIT_CROWN, F2):
-            x2 = proj(np.fft.irfft(F * S, nf)[hist : hist + w])
-            G = np.array([[x1 @ x1, x1 @ x2], [x1 @ x2, x2 @ x2]])
-            r = np.array([x1 @ yr, x2 @ yr])
-            c = np.linalg.lstsq(G, r, rcond=None)[0]
-            best = min(best, (float(yr @ yr - c @ r), Tc, float(c[0])), key=lambda v: v[0])
+            x2 = proj(sfft.irfft(F * S, nf)[:, hist : hist + w].T).T
+            g12 = np.einsum("bt,bt->b", x1, x2)
+            G = np.stack([np.stack([np.einsum("bt,bt->b", x1, x1), g12], -1),
+                          np.stack([g12, np.einsum("bt,bt->b", x2, x2)], -1)], -2)
+            r = np.stack([x1 @ yr, x2 @ yr], -1)
+            c = np.einsum("bij,bj->bi", np.linalg.pinv(G, rcond=eps2), r)
+            sse = yr @ yr - np.einsum("bi,bi->b", c, r)
+            better = sse < best[:, 0]  # strictly: the first crown lag wins a tie, as min() does
+            best[better] = np.stack([sse, np.full_like(sse, Tc), c[:, 0]], -1)[better]
         return best
 
-    def search(thetas, pes):
-        return min(((fit(th, pe), th, pe) for th in thetas for pe in pes), key=lambda v: v[0][0])
+    def search(thetas, pes):  # the first (theta-major) least sse, as min() over the grid
+        pairs = [(th, pe) for th in thetas for pe in pes]
+        best = np.concatenate([fits(pairs[i : i + 64]) for i in range(0, len(pairs), 64)])
+        i = int(np.argmin(best[:, 0]))
+        return (float(best[i, 0]), float(best[i, 1]), float(best[i, 2])), *pairs[i]
 
     grid = np.arange(lo, hi + 1e-9, 5.0)
     _, th, pe = search(grid, TRANSIT_PECLET)
