@@ -1063,12 +1063,13 @@ def update(state: OnlineState, t, y, u):
         state = eqx.tree_at(lambda s: (s.buf_y, s.buf_u, s.n_seen), state,
                             (by, bu, np.asarray(end_iv)))
         j = end_iv // S - 1
+        predictor = int(state.model["number"])  # the model in force predicts interval j
         state, event, record, y_pred = _close_interval(state, j)
         yi, _ = _take(state, j * S, S)
         ts.append(t0 + np.arange(j * S, end_iv) * c.dt)
         ys.append(yi)
         ps.append(y_pred if y_pred is not None else np.full(S, np.nan))
-        ms.append(np.full(S, event["model"] if y_pred is not None else 0))
+        ms.append(np.full(S, predictor if y_pred is not None else 0))
         if y_pred is not None:
             event["mse"] = float(np.nanmean((yi - y_pred) ** 2)) if np.any(
                 np.isfinite(yi)) else None
