@@ -99,7 +99,6 @@ def test_update_rule_records_E(switching):
     assert "E_reident" in ident.table() and "p2" in ident.table()
 
 
-
 def test_predictions_carry_the_number_of_the_model_that_made_them(switching):
     # interval j is predicted (Step 5) by the model in force before j closed; a model accepted
     # at j's end predicts from j + 1 on, i.e. from its record's sim_start
@@ -115,6 +114,7 @@ def test_predictions_carry_the_number_of_the_model_that_made_them(switching):
     t_switch = np.flatnonzero(np.diff(s["model_number"]) != 0)[-1] + 1
     assert s["t"][t_switch] == switch["sim_start"] == 20 * S
     assert s["model_number"][t_switch] == switch["model"]
+
 
 def test_reidentification_needs_an_operating_point():
     t, y, u, _ = switching_experiment()
