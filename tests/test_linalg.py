@@ -48,6 +48,28 @@ def test_batched_and_grad():
     assert abs(jax.grad(f)(t0) - fd) <= 1e-7 * abs(fd)
 
 
+def test_expm_stops_squaring_at_s_with_the_static_loops_results_and_derivatives():
+    # the while loop runs the same products as the static loop of masked squarings (a batch:
+    # until its largest s, each matrix kept once its own s is reached): equal bitwise, jitted
+    # and vmapped over matrices needing 0 to 9 squarings; its derivative is the static loop's
+    # (a while loop has no reverse mode), in both modes
+    rng = np.random.default_rng(3)
+    As = jnp.asarray(rng.normal(size=(6, 5, 5)) * np.array([1e-3, 0.1, 1.0, 5.0, 40.0, 300.0])
+                     [:, None, None])
+    fast, static = jax.jit(jax.vmap(L.expm)), jax.jit(jax.vmap(L._expm_static))
+    np.testing.assert_array_equal(np.asarray(fast(As)), np.asarray(static(As)))
+    for A in As[:3]:
+        np.testing.assert_array_equal(np.asarray(expm(A)), np.asarray(jax.jit(L._expm_static)(A)))
+
+    def loss(f):
+        return lambda A: jnp.sum(jnp.sin(f(A)))
+
+    for A in As[:4]:
+        for d in (jax.grad, jax.jacfwd):
+            np.testing.assert_array_equal(np.asarray(jax.jit(d(loss(L.expm)))(A)),
+                                          np.asarray(jax.jit(d(loss(L._expm_static)))(A)))
+
+
 @pytest.mark.parametrize(
     "a", [[1, 3.5, 3.5, 1], [2, 3, 1, 0], [1, -1, 1], [0, 1, 1], [1, 0, 1], [62.86e-6, 10.82e-3, 1],
           [1, 2, 3, 4, 1, 0, 0], [-1, 0, 1], [6, 11, 6, 1, 0]])

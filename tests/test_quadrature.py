@@ -115,3 +115,19 @@ def test_legendre_expansion_reproduces_phi():
             ref = R.phi_poly(N, M, i)(r)
             got = npleg.legval(2 * r - 1, c)
             assert np.max(np.abs(got - ref)) <= 1e-11 * max(1.0, np.max(np.abs(ref)))
+
+
+def test_shift_samples_is_the_clipped_index_for_every_lag_window_and_batch():
+    # x[clip(j - lag, 0, T - 1)] for j in the record or in a window of consecutive samples,
+    # lags from -1 (the next sample) to beyond the window's front padding; jitted, and vmapped
+    # over the lag (the search's candidates differ in their delays)
+    from mfmjax._quadrature import shift_samples
+
+    x = jnp.asarray(np.random.default_rng(0).normal(size=50))
+    lags = jnp.asarray([-1, 0, 1, 7, 49, 50, 61, 140])
+    for start, length in ((None, 50), (0, 12), (20, 12), (38, 12)):
+        j = np.arange(50) if start is None else start + np.arange(length)
+        rows = None if start is None else jnp.asarray(j)
+        want = np.stack([np.asarray(x)[np.clip(j - int(lag), 0, 49)] for lag in lags])
+        got = jax.jit(jax.vmap(lambda lag, r=rows: shift_samples(x, lag, r)))(lags)
+        np.testing.assert_array_equal(np.asarray(got), want)
