@@ -164,7 +164,7 @@ def _expm_static(A):
 def expm(A):
     """Matrix exponential: Taylor on A / 2^s, then s squarings. The squarings stop at s (a
     batch: at its largest s) instead of running all _SQUARINGS masked ones: the search's
-    validation simulations, which take 6 of them per candidate, ran 1.3x faster. The same
+    validation simulations take 6 per candidate (the input terms), 62 -> 19 us. The same
     products as `_expm_static`, whose derivative `expm` uses (grad-safe: a while loop has no
     reverse mode)."""
     E, s = _scaled_taylor(A)
