@@ -439,16 +439,24 @@ def test_improved_mode_on_switching_plant():
 
 def test_delay_refinement_finds_off_grid_delay():
     # noise-free plants A then B with a 34 s input-1 delay; the identifier starts from 30 s
+    from jaxlog import compiles
+
     A, B = switching_plant()
     A, B = (Model.from_coefficients(p.a, p.b, delays=[34.0, 0.0], intersample=("foh", "zoh"))
             for p in (A, B))
     t, y, u, _ = switching_experiment(models=(A, B))
     grid_only = tuple(v for v in mfmjax._online.IMPROVEMENTS if v != "refine")
     last = {}
-    for name, imp in (("grid", grid_only), ("refined", None)):
-        ident = _run(t, y, u, _config(mode="improved", delays=(30.0, 0.0), improvements=imp),
-                     chunk=1000)
-        last[name] = ident.models[-1]["delays"][0]
+    with compiles() as names:
+        for name, imp in (("grid", grid_only), ("refined", None)):
+            cfg = _config(mode="improved", delays=(30.0, 0.0), improvements=imp)
+            ident = _run(t, y, u, cfg, chunk=1000)
+            last[name] = ident.models[-1]["delays"][0]
+    # every grid (delay grids, the half-window pool, the refit, the refinement's single
+    # settings) runs one (h, delays) setting per chunk: one chunk program per window bound
+    bounds = {cfg.window_bound(w) for w in (cfg.n_start, cfg.n_start // 2, cfg.n_reident,
+                                            cfg.n_reident // 2)}
+    assert names.count("jit(evaluate_chunk)") <= len(bounds), (names, bounds)
     # the 10 s grid holds the value in use (30 s) for the last model, 4 s off; golden-section
     # refinement within +-5 s ends in a bracket 10 * 0.618^4 = 1.5 s wide around the E minimum
     assert last["grid"] % 10.0 == 0.0 and abs(last["grid"] - 34.0) >= 4.0
