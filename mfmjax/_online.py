@@ -733,9 +733,10 @@ def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
         return None, None, None, window, "forecast"
     res, i, wp, hp = picks[best]
     winner = _row(res, i)
-    # the winner's settings fitted again on the newest window (it includes interval j)
+    # the winner's settings fitted again on the newest window (it includes interval j): its
+    # h alone (one chunk of the same program; the other widths' candidates were never used)
     _, _, res2, window2 = _identify_window(state, j, wp, tuple((d,) for d in winner["delays"]),
-                                           hp)
+                                           (winner["h"],))
     same = _same_settings(c, res2, winner)
     if same:
         winner, window = _row(res2, same[0]), window2
