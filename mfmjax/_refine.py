@@ -172,11 +172,6 @@ class _Objective(eqx.Module):
         return jnp.where(ok, jnp.log(jnp.where(ok, val, 1.0)), jnp.inf), None
 
 
-@jit
-def _value(fn, z):
-    return fn(z, None)[0]
-
-
 def refine(
     signals: Signals, start: Model, *, score: str = "E", vary=SETTINGS, bounds: dict | None = None,
     validate=None, observer_window=None, max_steps: int = 40, rtol: float = 1e-6,
@@ -258,12 +253,14 @@ def refine(
     import optimistix as optx  # here: importing it costs 0.13 s at every CLI start
 
     solver = optx.BFGS(rtol=rtol, atol=atol)
-    state = _bfgs_init(solver, objective, z0)
-    z, path, result, steps = z0, [float(_value(objective, z0))], optx.RESULTS.successful, 0
+    # optimistix's first step evaluates the objective at z0 only (and keeps z0); every step
+    # returns the last accepted iterate with its value in `state.f_info` (no program of its own)
+    first = _bfgs_step(solver, objective, z0, _bfgs_init(solver, objective, z0))
+    z, path, result, steps = z0, [float(first[1].f_info.f)], optx.RESULTS.successful, 0
     best_z, best_f = z0, path[0]
     for steps in range(1, max_steps + 1):
-        z, state = _bfgs_step(solver, objective, z, state)
-        f = float(_value(objective, z))  # the iterate (a line-search trial may be worse)
+        z, state = first if steps == 1 else _bfgs_step(solver, objective, z, state)
+        f = float(state.f_info.f)  # the iterate's (a line-search trial may be worse)
         path.append(f)
         if math.isfinite(f) and f < best_f:
             best_z, best_f = z, f
