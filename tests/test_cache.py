@@ -83,14 +83,22 @@ def _run(script, cache, executables=False):
     return json.loads(line[len("RESULT "):])
 
 
-def test_programs_are_written_and_read_back(tmp_path):
-    # JAX's own persistent cache (stored executables off)
-    script = tmp_path / "probe.py"
+@pytest.fixture(scope="module")
+def plain_runs(tmp_path_factory):
+    """The probe with JAX's own persistent cache only (stored executables off), in a first and
+    a second process sharing one cache folder: (cache, cold, warm). The cold run is also the
+    reference of the stored-executable test below."""
+    tmp = tmp_path_factory.mktemp("plain")
+    script = tmp / "probe.py"
     script.write_text(_SCRIPT)
-    cache = tmp_path / "cache"
-    cold = _run(script, cache)
+    cache = tmp / "cache"
+    return cache, _run(script, cache), _run(script, cache)
+
+
+def test_programs_are_written_and_read_back(plain_runs):
+    # JAX's own persistent cache (stored executables off)
+    cache, cold, warm = plain_runs
     assert cold["dir"] == str(cache)
-    warm = _run(script, cache)
     for name in ("simulate", "identify", "observe", "srivc", "output_error"):
         c, w = cold[name], warm[name]
         assert c["value"] == w["value"], name  # bitwise
@@ -109,10 +117,10 @@ def _stored(cache):
     return sorted(f for f in os.listdir(cache) if f.startswith("mfmjax-exe-"))
 
 
-def test_stored_executables_are_written_loaded_and_replaced_when_damaged(tmp_path):
+def test_stored_executables_are_written_loaded_and_replaced_when_damaged(tmp_path, plain_runs):
     script = tmp_path / "probe.py"
     script.write_text(_SCRIPT)
-    plain = _run(script, tmp_path / "plain")  # JAX's persistent cache only: the reference
+    plain = plain_runs[1]  # JAX's persistent cache only, first process: the reference
     cache = tmp_path / "cache"
     cold = _run(script, cache, executables=True)
     files = _stored(cache)
