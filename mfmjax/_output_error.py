@@ -18,7 +18,6 @@ import numpy as np
 
 from . import _padded as padded
 from ._jit import device, jit
-from ._linalg import expm
 from ._model import Model, is_stable
 from ._optim import USABLE
 from ._pytree import replace_fields
@@ -144,9 +143,8 @@ class _Residual(eqx.Module):
         p = self.theta0.shape[0]
         z = jnp.where(self.free, z, 0.0)  # padded coefficients are slots of the realisation
         c = padded.with_theta(self.c, self.theta0 + self.scale * z[:p], self.signals.offset)
-        (ss, drive, direct), _ = padded.padded_forced(self.signals, c,
-                                                      self.start + jnp.arange(self.length))
-        Phi = expm(ss.A * self.signals.dt)
+        (ss, Phi, drive, direct), _ = padded.padded_forced(self.signals, c,
+                                                           self.start + jnp.arange(self.length))
 
         def step(x, d):
             return Phi @ x + d, ss.C[0] @ x

@@ -104,8 +104,8 @@ def padded_forced(sig: Signals, c, rows=None):
         dl.append(jnp.asarray(0.0))
         u_cols.append(jnp.ones(sig.n_samples))
     ss, live = realisation(*realised(c, sig.offset))
-    drive, direct = forced_terms(ss, u_cols, modes, dl, sig.dt, sig.n_samples, rows)
-    return (ss, drive, direct), live
+    Phi, drive, direct = forced_terms(ss, u_cols, modes, dl, sig.dt, sig.n_samples, rows)
+    return (ss, Phi, drive, direct), live
 
 
 def observe_padded(sig: Signals, c, start, length: int, ob_length, valid=None):

@@ -255,11 +255,12 @@ def refine(
     solver = optx.BFGS(rtol=rtol, atol=atol)
     # optimistix's first step evaluates the objective at z0 only (and keeps z0); every step
     # returns the last accepted iterate with its value in `state.f_info` (no program of its own)
-    first = _bfgs_step(solver, objective, z0, _bfgs_init(solver, objective, z0))
-    z, path, result, steps = z0, [float(first[1].f_info.f)], optx.RESULTS.successful, 0
+    z, state = _bfgs_step(solver, objective, z0, _bfgs_init(solver, objective, z0))
+    path, result, steps = [float(state.f_info.f)], optx.RESULTS.successful, 0
     best_z, best_f = z0, path[0]
     for steps in range(1, max_steps + 1):
-        z, state = first if steps == 1 else _bfgs_step(solver, objective, z, state)
+        if steps > 1:  # the first step is the one taken above
+            z, state = _bfgs_step(solver, objective, z, state)
         f = float(state.f_info.f)  # the iterate's (a line-search trial may be worse)
         path.append(f)
         if math.isfinite(f) and f < best_f:

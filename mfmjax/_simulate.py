@@ -28,30 +28,31 @@ from ._status import Status
 _BIG = 1e150  # state magnitude treated as overflow (unstable model on a long window)
 
 
-def _gammas(A, b, delta):
-    """e^{A delta}, Gamma_0 b, Gamma_1 b for one input column b (augmented expm)."""
-    n = A.shape[0]
-    aug = jnp.zeros((n + 2, n + 2))
-    aug = aug.at[:n, :n].set(A).at[:n, n].set(b).at[n, n + 1].set(1.0)
-    E = expm(aug * delta)
-    return E[:n, :n], E[:n, n], E[:n, n + 1]
-
-
-def _input_terms(A, b, mode: str, frac, dt: float):
-    """(P, Q, R) vectors (n,) of one input for fractional delay `frac` in [0, 1)."""
-    d1, d2 = frac * dt, (1.0 - frac) * dt
-    _, g0a, g1a = _gammas(A, b, d1)
-    E2, g0b, g1b = _gammas(A, b, d2)
-    if mode == "zoh":
-        return E2 @ g0a, g0b, jnp.zeros_like(b)
-    P = E2 @ (frac * g0a - g1a / dt)
-    Q = E2 @ ((1.0 - frac) * g0a + g1a / dt) + g0b - g1b / dt
-    R = g1b / dt
-    return P, Q, R
+def step_terms(A, B, modes, fracs, dt: float):
+    """Phi = e^{A dt} and per input column b_k of `B` (n, S) its (P, Q, R) vectors (n,) for
+    fractional delay `fracs[k]` in [0, 1), from one batched expm of the 2S + 1 augmented
+    matrices (module docstring; A alone for Phi). One expm per matrix made a larger program:
+    `output_error` compiled in 1.50 s against 1.10 s and ran 66-71 ms against 46 ms warm."""
+    n, S = A.shape[0], len(modes)
+    aug = jnp.zeros((S + 1, n + 2, n + 2)).at[:, :n, :n].set(A)
+    aug = aug.at[:S, :n, n].set(B.T).at[:S, n, n + 1].set(1.0)  # the last: A alone (Phi)
+    f = jnp.stack(fracs).astype(jnp.float64) if S else jnp.zeros(0)
+    deltas = jnp.concatenate([f * dt, (1.0 - f) * dt, jnp.full(1, dt)])
+    E = jax.vmap(expm)(jnp.concatenate([aug[:S], aug[:S], aug[S:]]) * deltas[:, None, None])
+    E2, g0, g1 = E[S : 2 * S, :n, :n], E[:, :n, n], E[:, :n, n + 1]
+    terms = []
+    for k, mode in enumerate(modes):
+        g0a, g1a, g0b, g1b = g0[k], g1[k], g0[S + k], g1[S + k]
+        if mode == "zoh":
+            terms.append((E2[k] @ g0a, g0b, jnp.zeros(n)))
+            continue
+        terms.append((E2[k] @ (f[k] * g0a - g1a / dt),
+                      E2[k] @ ((1.0 - f[k]) * g0a + g1a / dt) + g0b - g1b / dt, g1b / dt))
+    return E[-1, :n, :n], terms
 
 
 def forced_response(model: Model, u, dt: float):
-    """Per-step drive (T, n) and direct term (T,) of all inputs (offset included)."""
+    """(ss, Phi, drive (T, n), direct (T,)) of all inputs (offset included)."""
     ss = state_space(model)
     T = u.shape[0]
     K = model.n_inputs
@@ -62,23 +63,25 @@ def forced_response(model: Model, u, dt: float):
         cols.append(jnp.ones(T))
         modes.append("zoh")
         delays.append(jnp.asarray(0.0))
-    drive, direct = forced_terms(ss, cols, modes, delays, dt, T)
-    return ss, drive, direct
+    Phi, drive, direct = forced_terms(ss, cols, modes, delays, dt, T)
+    return ss, Phi, drive, direct
 
 
 def forced_terms(ss, cols, modes, delays, dt: float, T: int, rows=None):
-    """Per-step drive (T, n) and direct term (T,) of input columns through (A, B, D); with
-    `rows` (sample indices, may be traced) only those steps, exactly as in the whole record."""
+    """Phi = e^{A dt}, the per-step drive (T, n) and the direct term (T,) of input columns
+    through (A, B, D); with `rows` (sample indices, may be traced) only those steps, exactly
+    as in the whole record."""
     L = T if rows is None else rows.shape[0]
     drive = jnp.zeros((L, ss.A.shape[0]))
     direct = jnp.zeros(L)
+    split = [split_delay(tau, dt) for tau in delays]
+    Phi, terms = step_terms(ss.A, ss.B[:, : len(cols)], modes, [f for _, f in split], dt)
     for k, (x, mode, tau) in enumerate(zip(cols, modes, delays)):
-        d, f = split_delay(tau, dt)
-        P, Q, R = _input_terms(ss.A, ss.B[:, k], mode, f, dt)
+        d, (P, Q, R) = split[k][0], terms[k]
         um1, u0, up1 = (shift_samples(x, d + i, rows) for i in (1, 0, -1))
         drive = drive + um1[:, None] * P + u0[:, None] * Q + up1[:, None] * R
         direct = direct + ss.D[0, k] * delayed_samples(x, tau, dt, mode, rows)
-    return drive, direct
+    return Phi, drive, direct
 
 
 def simulate_status(model: Model, u, x0, dt: float, valid=None):
@@ -89,8 +92,7 @@ def simulate_status(model: Model, u, x0, dt: float, valid=None):
     `valid` samples count for that flag (`u` padded beyond them, see `simulate`).
     """
     u = jnp.asarray(u, dtype=jnp.float64).reshape(jnp.shape(u)[0], -1)
-    ss, drive, direct = forced_response(model, u, dt)
-    Phi = expm(ss.A * dt)
+    ss, Phi, drive, direct = forced_response(model, u, dt)
     inside = jnp.arange(u.shape[0]) < (u.shape[0] if valid is None else valid)
 
     def step(carry, d):
