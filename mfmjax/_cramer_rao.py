@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._jit import jit
 from ._model import Model
 from ._output_error import free_parameters, with_parameters
 from ._simulate import forced_response
@@ -26,12 +27,19 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
     u = jnp.asarray(u, dtype=jnp.float64).reshape(jnp.shape(u)[0], -1)
     length = u.shape[0] if length is None else length
     names, theta0 = free_parameters(model)
-    sim = simulated_output(model, u, dt, 0, length)
-    J = jax.jacfwd(lambda v: sim(v[: theta0.size], v[theta0.size :]))(
-        jnp.concatenate([jnp.asarray(theta0), jnp.asarray(x0, dtype=jnp.float64)]))
-    J = np.asarray(J)
+    v = np.concatenate([theta0, np.asarray(x0, dtype=np.float64)])
+    J = np.asarray(_sensitivities(model.unlabelled(), u, v, float(dt), int(length)))
     cov = sigma**2 * np.linalg.pinv(J.T @ J)
     return names, np.sqrt(np.diag(cov))[: theta0.size]
+
+
+@jit
+def _sensitivities(model, u, v, dt: float, length: int):
+    """J = d y_sim / d(theta, x0) at v = (free parameters, x0): `jax.jacfwd` of the exact
+    simulation, one compiled program (eager, it dispatched every operation on its own)."""
+    p = v.shape[0] - model.n
+    sim = simulated_output(model, u, dt, 0, length)
+    return jax.jacfwd(lambda w: sim(w[:p], w[p:]))(v)
 
 
 def simulated_output(model, u, dt, start, length):
