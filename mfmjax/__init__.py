@@ -26,7 +26,7 @@ from ._estimate import estimate_outputs as estimate_outputs  # noqa: E402
 from ._gram import gram as gram  # noqa: E402
 from ._gram import modulated_signals as modulated_signals  # noqa: E402
 from ._identify import identify as identify  # noqa: E402
-from ._jit import jit as _jit  # noqa: E402
+from ._jit import jit as _compiled  # noqa: E402
 from ._model import Model as Model  # noqa: E402
 from ._modulating import ModulatingFunction as ModulatingFunction  # noqa: E402
 from ._modulating import phi as phi  # noqa: E402
@@ -70,7 +70,7 @@ from ._structure import Structure as Structure  # noqa: E402
 
 # the public solve is one compiled program: called eagerly, its elimination and eigenvalue loops
 # were traced and compiled again at every call (320 ms each, against well under 1 ms compiled)
-constrained_solve = _jit(_constrained_solve)
+constrained_solve = _compiled(_constrained_solve)
 
 __version__ = "0.1.0"
 
