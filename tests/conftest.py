@@ -42,3 +42,17 @@ def _fresh_jax_caches():
     from mfmjax import _executables
 
     _executables.clear()
+
+
+# The heaviest test files first (test time of the 2026-11-24 suite, in this order), the rest
+# in their collection order after them: pytest-xdist's `loadfile` hands whole files to the
+# workers in collection order, so a heavy file near the end (alphabetically,
+# test_settings_values.py) left the other worker idle while it ran.
+HEAVY_FIRST = ("test_search.py", "test_cache.py", "test_settings_values.py", "test_estimate.py",
+               "test_selection.py", "test_notebooks.py", "test_refine.py", "test_fuzz.py",
+               "test_online.py")
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable within a file
