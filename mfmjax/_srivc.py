@@ -54,10 +54,11 @@ from . import _boundary as _b
 from . import _padded as padded
 from ._batch import as_records, map_pairs
 from ._jit import array_jit
-from ._linalg import expm, hurwitz, solve
+from ._linalg import hurwitz, solve
 from ._model import Model
 from ._quadrature import delayed_samples, edge_padded, record_bucket, shift_samples, split_delay
 from ._signals import Signals
+from ._simulate import step_terms
 from ._status import Status
 
 DIVERGENCE_FACTOR = 100.0  # simulation error this many times the best iterate's: diverged
@@ -139,31 +140,16 @@ def _companion(a, n):
     return jnp.where((i[:, None] == n - 1) & (i[None, :] < n), -a[:-1][None, :], A)
 
 
-def _gammas(Ac, n, deltas):
-    """e^{A d}, Gamma_0(d) e_n, Gamma_1(d) e_n for every d in `deltas` (one batched expm of
-    the augmented matrix [[A, e_n, 0], [0, 0, 1], [0, 0, 0]] d, as in `simulate`)."""
-    N = Ac.shape[0]
-    aug = jnp.zeros((N + 2, N + 2)).at[:N, :N].set(Ac).at[n - 1, N].set(1.0).at[N, N + 1].set(1.0)
-    E = jax.vmap(lambda d: expm(aug * d))(deltas)
-    return E[:, :N, :N], E[:, :N, N], E[:, :N, N + 1]
-
-
 def _terms(Ac, n, modes, taus, dt):
     r"""Phi (n, n) and per column the step terms (S, 3, n) of
-    $z_{j+1} = \Phi z_j + P x_{j-d-1} + Q x_{j-d} + R x_{j-d+1}$ (delay (d + f) dt)."""
+    $z_{j+1} = \Phi z_j + P x_{j-d-1} + Q x_{j-d} + R x_{j-d+1}$ (delay (d + f) dt): the
+    columns enter the filter's last state, B = e_n (`step_terms`, as in `simulate`)."""
     S = len(modes)
     d, f = split_delay(taus, dt)
-    E, g0, g1 = _gammas(Ac, n, jnp.concatenate([f * dt, (1.0 - f) * dt, jnp.full(1, dt)]))
-    out = []
-    for s, mode in enumerate(modes):
-        E2, g0a, g1a, g0b, g1b, fs = E[S + s], g0[s], g1[s], g0[S + s], g1[S + s], f[s]
-        if mode == "zoh":
-            out.append(jnp.stack([E2 @ g0a, g0b, jnp.zeros_like(g0b)]))
-        else:
-            out.append(jnp.stack([E2 @ (fs * g0a - g1a / dt),
-                                  E2 @ ((1.0 - fs) * g0a + g1a / dt) + g0b - g1b / dt,
-                                  g1b / dt]))
-    return E[-1], d, jnp.stack(out)
+    e_n = (jnp.arange(Ac.shape[0]) == n - 1).astype(jnp.float64)
+    Phi, terms = step_terms(Ac, jnp.tile(e_n[:, None], (1, S)), modes, [f[s] for s in range(S)],
+                            dt)
+    return Phi, d, jnp.stack([jnp.stack(t) for t in terms])
 
 
 def _apply(X, d, PQR, a, n, taus, dt, modes, Phi):
