@@ -5,7 +5,8 @@ program and per test file.
     python benchmarks/suite_compiles.py [extra pytest arguments]
 
 Prints the programs with the most XLA compile time and the test files that compile most;
-saves benchmarks/results/suite_compiles.json. Times are taken with the other xdist worker
+saves benchmarks/results/suite_compiles.json (set MFMJAX_SUITE_COMPILES_KEEP=<folder> to keep
+the per-test log: one line per compilation, test id then JAX's message). Times are taken with the other xdist worker
 running: read shares, not absolute seconds. Persistent-cache hits are counted apart.
 """
 
@@ -74,7 +75,10 @@ def summarise(log_dir: str) -> dict:
 
 
 def main():
-    with tempfile.TemporaryDirectory() as log_dir:
+    keep = os.environ.get("MFMJAX_SUITE_COMPILES_KEEP")  # a folder: keep the per-test log there
+    with tempfile.TemporaryDirectory() as tmp:
+        log_dir = keep or tmp
+        os.makedirs(log_dir, exist_ok=True)
         env = dict(os.environ, **{LOG_DIR: log_dir})
         env["PYTHONPATH"] = os.pathsep.join([HERE] + [p for p in [env.get("PYTHONPATH")] if p])
         cmd = [sys.executable, "-m", "pytest", "-q", "-p", "suite_compiles", "-p", "no:logging",

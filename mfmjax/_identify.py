@@ -18,9 +18,9 @@ from ._gram import (
 )
 from ._jit import jit
 from ._linalg import hurwitz
-from ._model import Model, is_stable
+from ._model import Model
 from ._modulating import ModulatingFunction, as_values
-from ._pytree import replace_fields
+from ._pytree import build
 from ._quadrature import edge_padded, record_bucket
 from ._signals import Signals
 from ._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
@@ -43,7 +43,8 @@ def _check(signals: Signals, structure: Structure, mf: ModulatingFunction, eta):
         )
     if not isinstance(mf, ModulatingFunction):
         raise TypeError(f"identify(): mf must be a ModulatingFunction, got {type(mf).__name__}")
-    structure = structure.for_inputs(signals.n_inputs)
+    structure = Structure.for_inputs(structure, signals.n_inputs)  # (a bound method of an
+    # equinox Module is built anew at every access: about 30 us on this hot path)
     n = structure.n
     for name, val in (("N", mf.N), ("M", mf.M)):
         if _concrete(val) and float(np.min(np.asarray(val))) < n:
@@ -67,11 +68,34 @@ def _fmt(v):
     return v.tolist()
 
 
-@jit
-def identify_core(signals, structure, mf, eta, length: int, end=None):
-    """The compiled core: `signals` unlabelled, `mf` as values (`as_values`), `length` the static
+def identify_model(signals, structure, mf, eta, length: int, end=None,
+                   labels: tuple[str, tuple[str, ...]] = ("y", ()), *,
+                   flag_unstable: bool = False) -> Model:
+    """The MFM estimate as a `Model` labelled with `labels` (output name, input names; default
+    names when empty): `signals` unlabelled, `mf` as values (`as_values`), `length` the static
     kernel length (`compiled_length`), `end` the record's own length when `signals` are padded
-    (`bucketed`). One program per (structure, record bucket, kernel bucket)."""
+    (`bucketed`); `flag_unstable`: set `Status.UNSTABLE` (`identify`). The compiled part
+    (`identify_core`) returns only what it computes; the model is assembled around it from the
+    arguments (no copies of the settings through the program)."""
+    a, b, offset, theta, J, J_rel, cond, status = identify_core(signals, structure, mf, eta,
+                                                                length, end, flag_unstable)
+    output_name, input_names = labels
+    return build(Model, a=a, b=b, offset=offset, delays=signals.delays, theta=theta, J=J,
+                 J_rel=J_rel, cond=cond, status=status, mf=mf, structure=structure,
+                 intersample=signals.intersample, has_offset=signals.offset,
+                 output_name=output_name,
+                 input_names=tuple(input_names) or tuple(f"u{k + 1}" for k in range(
+                     signals.n_inputs)))
+
+
+@jit
+def identify_core(signals, structure, mf, eta, length: int, end=None,
+                  flag_unstable: bool = False):
+    """The compiled core of `identify_model`: (a, b, offset, theta, J, J_rel, cond, status).
+    One program per (structure, record bucket, kernel bucket). With `flag_unstable`, an A(s)
+    with a root in the closed right half plane sets `Status.UNSTABLE` (the Routh test
+    `hurwitz`, as the search's validation and SRIVC apply it), except where a_n vanished or
+    values are non-finite: those bits already say the coefficients are no model."""
     ms = modulated_signals(signals, structure, mf, length=length, end=end)
     G = gram(ms)
     K = signals.n_inputs
@@ -99,54 +123,25 @@ def identify_core(signals, structure, mf, eta, length: int, end=None):
         pos += structure.m[k] + 1
     offset = theta[pos] / div if signals.offset else jnp.asarray(0.0)
     J = mf.h ** (mf.N + mf.M + 1) * jnp.sqrt(quad)  # undo the common factor (see _gram)
-    return Model(
-        a=theta[: n + 1] / div,
-        b=tuple(bs),
-        offset=offset,
-        delays=signals.delays,
-        theta=theta,
-        J=J,
-        J_rel=J_rel,
-        cond=cond,
-        status=status.astype(jnp.int32),
-        mf=mf,
-        structure=structure,
-        intersample=signals.intersample,
-        has_offset=signals.offset,
-        output_name=signals.output_name,
-        input_names=signals.input_names,
-    )
+    a = theta[: n + 1] / div
+    status = status.astype(jnp.int32)
+    if flag_unstable:
+        void = (status & int(Status.NONFINITE | Status.A_N_ZERO)) != 0
+        status = status | jnp.where(void | hurwitz(a), 0, int(Status.UNSTABLE)).astype(jnp.int32)
+    return a, tuple(bs), offset, theta, J, J_rel, cond, status
 
 
 def bucketed(signals: Signals):
-    """(`signals` padded to their `record_bucket` by repeating the last sample, their length as
-    a value): records of every length in a bucket share one compiled `identify_core`. Traced
-    signals (inside a user's jit or vmap) are returned as they are, with `end` None."""
+    """(`signals` unlabelled (`Signals.unlabelled`) and padded to their `record_bucket` by
+    repeating the last sample, their length as a value): records of every length in a bucket
+    share one compiled `identify_core`. Traced signals (inside a user's jit or vmap) are only
+    unlabelled, with `end` None."""
     if not _concrete(signals.y) or not _concrete(signals.u):
-        return signals, None
+        return Signals.unlabelled(signals), None
     T = signals.n_samples
     pad = record_bucket(T) - T
-    if pad:
-        y, u = (edge_padded(np.asarray(x), pad) for x in (signals.y, signals.u))  # no program
-        signals = replace_fields(signals, y=y, u=u)
-    return signals, np.int32(T)
-
-
-def flag_unstable(model: Model) -> Model:
-    """`model` with `Status.UNSTABLE` set when A(s) has a root with Re >= 0, as `srivc`,
-    `output_error` and the search's validation set it (on the host when concrete; the Routh
-    test `hurwitz` when traced). Not where a_n vanished or values are non-finite: those bits
-    already say the coefficients are no model."""
-    void = Status.NONFINITE | Status.A_N_ZERO
-    if _concrete(model.status) and model.status.ndim == 0:
-        status = int(model.status)
-        if status & void or is_stable(model.a):
-            return model
-        return replace_fields(model, status=jax.device_put(np.int32(status | Status.UNSTABLE)))
-    unstable = ((model.status & void) == 0) & ~hurwitz(model.a)
-    # int32 throughout: under an eager `jax.vmap`, int32 | (weak int64) crashed XLA (jax 0.10.2)
-    bit = jnp.where(unstable, jnp.int32(Status.UNSTABLE), jnp.int32(0))
-    return replace_fields(model, status=model.status | bit)
+    y, u = (edge_padded(np.asarray(x), pad) if pad else x for x in (signals.y, signals.u))
+    return Signals.unlabelled(signals, y=y, u=u), np.int32(T)  # one copy, no program
 
 
 def identify(
@@ -190,9 +185,9 @@ def identify(
     check_identify(signals, structure, mf, eta, delay_max)
     structure, eta = _check(signals, structure, mf, eta)
     length = compiled_length(signals, mf, delay_max)
-    padded, end = bucketed(signals.unlabelled())
-    model = identify_core(padded, structure, as_values(mf), eta, length, end)
-    model = flag_unstable(model.labelled(signals.output_name, signals.input_names))
+    padded, end = bucketed(signals)
+    model = identify_model(padded, structure, as_values(mf), eta, length, end,
+                           (signals.output_name, signals.input_names), flag_unstable=True)
     if _concrete(model.status) and model.status.ndim == 0 and int(model.status) != 0:
         warnings.warn(
             f"identify(): status {describe(int(model.status))} (n={structure.n}, "

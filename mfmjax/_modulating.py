@@ -79,7 +79,9 @@ class ModulatingFunction(eqx.Module):
                 raise ValueError(
                     f"ModulatingFunction(): h={hv} exceeds h_max={h_max}; raise h_max"
                 )
-        self.h = jnp.asarray(h, dtype=jnp.float64)
+        # a concrete h stays on the host (NumPy float64): no device transfer per setting
+        self.h = (np.asarray(h, dtype=np.float64) if _is_concrete(h)
+                  else jnp.asarray(h, dtype=jnp.float64))
         if h_max is not None and not h_max > 0:
             raise ValueError(f"ModulatingFunction(): h_max must be > 0 (got {h_max})")
         self.h_max = None if h_max is None else float(h_max)

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _boundary as _b
-from ._identify import identify_core
+from ._identify import identify_model
 from ._jit import jit
 from ._model import Model
 from ._modulating import ModulatingFunction, as_values
@@ -50,8 +50,8 @@ def _scores(signals, structure, h, N, M, delays, eta, kernel: int, v0, length, o
     With `end` and `valid` (a padded record, `scores`), the record's own length and the
     validation window's: only their samples count."""
     sig = eqx.tree_at(lambda s: s.delays, signals, jnp.asarray(delays, dtype=jnp.float64))
-    model = identify_core(sig, structure, as_values(ModulatingFunction(N, M, h)), eta, kernel,
-                          end)
+    model = identify_model(sig, structure, as_values(ModulatingFunction(N, M, h)), eta, kernel,
+                           end)
     obs = observe_forced(forced_response(model, sig.u, sig.dt), sig.y, sig.dt, v0, length, ob,
                          None, valid)
     yv = jax.lax.dynamic_slice_in_dim(sig.y, v0, length)

@@ -236,12 +236,13 @@ class Signals(eqx.Module):
         self.output_rule = output_rule
         self.output_name, self.input_names = str(output_name), names
 
-    def unlabelled(self) -> Signals:
+    def unlabelled(self, **changes) -> Signals:
         """The same data with t0 = 0 and default names: what jitted programs see, so that a new
-        t0 or column name never compiles a new program (labels are put back on the results)."""
+        t0 or column name never compiles a new program (labels are put back on the results).
+        `changes`: other fields replaced in the same copy (e.g. padded y and u)."""
         K = self.n_inputs
         return replace_fields(self, t0=0.0, output_name="y",
-                              input_names=tuple(f"u{k + 1}" for k in range(K)))
+                              input_names=tuple(f"u{k + 1}" for k in range(K)), **changes)
 
     def window(self, t0: float, t1: float) -> Signals:
         """The samples with t0 <= t <= t1 (rounded to the grid) as their own record; time,

@@ -74,13 +74,13 @@ def test_identify_new_settings_inside_a_bucket_compile_once(record):
 def test_identify_values_equal_exact_kernel_length(record):
     """Bucketing only pads the kernel with exact zeros: parameters equal those of the exact
     length to rounding (the summation order of the convolution changes), 1e-10 relative."""
-    from mfmjax._identify import identify_core
+    from mfmjax._identify import identify_model
     from mfmjax._modulating import as_values
     from mfmjax._quadrature import kernel_length
 
     mf = ModulatingFunction(4, 5, 2.6)
-    exact = identify_core(record.unlabelled(), ST.for_inputs(2), as_values(mf), jnp.ones(8),
-                          kernel_length(2.6, DT))
+    exact = identify_model(record.unlabelled(), ST.for_inputs(2), as_values(mf), jnp.ones(8),
+                           kernel_length(2.6, DT))
     bucketed = mfmjax.identify(record, ST, mf)
     # norm-wise: rounding is relative to the largest entry (b_21 here is ~1e-7, a parameter the
     # noise-free system does not have, and carries absolute, not relative, rounding)
@@ -94,7 +94,7 @@ def test_identify_new_record_length_inside_a_bucket_compiles_nothing():
     parameters equal those of the core run on the unpadded record (its own length) to rounding
     (the FFT size and summation order change), 1e-10 relative norm-wise as above, and so does
     J_rel (the noise keeps it far above rounding: 1e-8)."""
-    from mfmjax._identify import identify_core
+    from mfmjax._identify import identify_model
     from mfmjax._modulating import as_values
     from mfmjax._quadrature import kernel_length, record_bucket
 
@@ -107,8 +107,8 @@ def test_identify_new_record_length_inside_a_bucket_compiles_nothing():
     with compiles() as names:
         model = mfmjax.identify(short, ST, mf)
     assert names == [], f"a new record length compiled {names}"
-    exact = identify_core(short.unlabelled(), ST.for_inputs(2), as_values(mf), jnp.ones(8),
-                          kernel_length(2.6, DT))
+    exact = identify_model(short.unlabelled(), ST.for_inputs(2), as_values(mf), jnp.ones(8),
+                           kernel_length(2.6, DT))
     assert exact.theta.shape == model.theta.shape and int(model.status) == int(exact.status) == 0
     diff = np.max(np.abs(np.asarray(model.theta) - np.asarray(exact.theta)))
     assert diff <= 1e-10 * np.max(np.abs(np.asarray(exact.theta)))
