@@ -1,11 +1,15 @@
-"""Interactive latency: `identify` at a NEW modulating-function setting and `output_error` from a
-NEW start, warm process, against NumPy/SciPy peers on the same data in the same process.
+"""Interactive latency: `identify` at a NEW modulating-function setting, `simulate` of a new model
+and `output_error` from a NEW start, warm process, against NumPy/SciPy peers on the same data in
+the same process.
 
 Settings are values (issue 12): a new (N, M, h) whose support fits the current kernel bucket
 reuses the compiled program, so a user exploring settings pays the run time, not a compile.
 
 - identify peer: `numpy_mfm.identify`, the careful per-candidate NumPy/SciPy MFM (exact kernel
   weights, FFT convolution, Gregory Gram, eq. 12).
+- simulate peer: the exact zoh/foh discretisation of each input (`cont2discrete`) filtered with
+  `lfilter`, summed (the output-error peer's simulation, from rest; it agrees with `simulate`
+  once the start-up transient of the two input-history conventions has decayed).
 - output-error peer: SciPy `least_squares` (Levenberg-Marquardt, finite-difference Jacobian)
   on the same free parameters and initial conditions, the exact zoh/foh discretisation of each
   input (`cont2discrete`) simulated with `lfilter` (C loop), started from the same MFM model.
@@ -88,6 +92,19 @@ def scipy_output_error(y, u, dt, modes, model, max_nfev=2000):
     return theta0 + scale * sol.x[: theta0.size], float(np.sum(sol.fun**2) * dt), sol.status
 
 
+def scipy_simulate(model, u, dt, modes):
+    """SciPy peer of `simulate` from rest: per input the exact zoh/foh discretisation
+    (`tf2ss`, `cont2discrete`, `ss2tf`) filtered with `lfilter` (C loop), summed."""
+    a = np.asarray(model.a)[::-1]
+    out = np.zeros(u.shape[0])
+    for k, bk in enumerate(model.b):
+        A, B, C, D = signal.tf2ss(np.asarray(bk)[::-1], a)
+        Ad, Bd, Cd, Dd, _ = signal.cont2discrete((A, B, C, D), dt, method=modes[k])
+        num, den = signal.ss2tf(Ad, Bd, Cd, Dd)
+        out += signal.lfilter(num[0], den, u[:, k])
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=20)
@@ -125,6 +142,24 @@ def main():
     print(f"  first call (compile + run) {first:.2f} s; new/peer = {med['new'] / med['peer']:.2f}"
           f"; max rel. parameter difference to the peer {agree:.1e}")
 
+    # -- simulate: a new model each call, against the SciPy peer ---------------------------------
+    models = [mfmjax.identify(clean, STRUCT, ModulatingFunction(*s)) for s in grid[1:]]
+    mfmjax.simulate(models[0], u, dt=DT).block_until_ready()
+    sim = [_timed(lambda m=m: mfmjax.simulate(m, u, dt=DT).block_until_ready())[1] for m in models]
+    sim_peer = [_timed(lambda m=m: scipy_simulate(m, u, DT, modes))[1] for m in models]
+    y_lib = np.asarray(mfmjax.simulate(models[0], u, dt=DT))
+    y_peer = scipy_simulate(models[0], u, DT, modes)
+    # the peer's filters start with zero input history; `simulate` holds the inputs before the
+    # first sample at their first value (foh): compared after that start-up transient decays
+    half = T // 2
+    sim_agree = float(np.max(np.abs(y_lib[half:] - y_peer[half:])) / np.max(np.abs(y_peer)))
+    sm = {"lib": statistics.median(sim), "peer": statistics.median(sim_peer)}
+    print(f"\nsimulate, T={T}, {len(models)} models (a new model each call)")
+    print(f"  {'mfmjax simulate':<34}{sm['lib'] * 1e3:>12.2f} ms")
+    print(f"  {'SciPy peer (cont2discrete+lfilter)':<34}{sm['peer'] * 1e3:>12.2f} ms")
+    print(f"  lib/peer = {sm['lib'] / sm['peer']:.2f}; max |y - y_peer| / max |y_peer| over the "
+          f"second half = {sim_agree:.1e}")
+
     # -- output_error: new starts vs a repeated start, and the SciPy peer ----------------------
     starts = [mfmjax.identify(noisy, STRUCT, ModulatingFunction(*s)) for s in grid]
     _, oe_first = _timed(lambda: mfmjax.output_error(noisy, starts[0]))
@@ -149,6 +184,8 @@ def main():
                                   numpy_peer_ms=med["peer"] * 1e3,
                                   ratio_new_to_peer=med["new"] / med["peer"],
                                   max_rel_param_diff_to_peer=agree),
+        simulate=dict(ms=sm["lib"] * 1e3, scipy_peer_ms=sm["peer"] * 1e3,
+                      ratio_to_peer=sm["lib"] / sm["peer"], max_rel_diff_to_peer=sim_agree),
         output_error=dict(first_call_s=oe_first, new_start_s=oe["new"], repeated_start_s=oe["repeat"],
                           scipy_peer_s=oe["peer"], ratio_new_to_repeat=oe["new"] / oe["repeat"],
                           ratio_new_to_peer=oe["new"] / oe["peer"], median_E=E_lib,

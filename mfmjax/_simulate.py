@@ -133,8 +133,9 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
             f"input), got {u.shape}" + ("; transpose it (u.T)" if u.shape[0] == K else "")
         )
     if x0 is None:
-        x0 = jnp.zeros(model.n)
-    x0 = jnp.asarray(_b.array("simulate", "x0", x0), dtype=jnp.float64)
+        x0 = np.zeros(model.n)
+    x0 = _b.array("simulate", "x0", x0)
+    x0 = (jnp if _b.is_traced(x0) else np).asarray(x0, dtype=np.float64)  # NumPy: no program
     if x0.shape != (model.n,):
         raise ValueError(f"simulate(): x0 must have shape ({model.n},), got {x0.shape}")
     dt = _b.number("simulate", "dt", dt, lo=0, lo_open=True, fix="give the sampling interval")
@@ -145,18 +146,19 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
         args = (u, x0, dt)
     else:
         args = (edge_padded(u, record_bucket(T) - T), x0, dt, np.int32(T))
-    y, xs, status = _simulate(model.unlabelled(), *args)
-    if _b.is_traced(y):
-        y, xs = y[:T], xs[:T]
-    else:
-        y, xs = (jax.device_put(np.asarray(v)[:T]) for v in (y, xs))  # host slice: no program
+    # `Model.unlabelled(model)`: a bound method of an equinox Module is built at every access
+    y, xs, status = _simulate(Model.unlabelled(model), *args)
     if _b.is_traced(status) or _b.is_traced(y):
         # no eqx.error_if here: a program holding one is never written to the persistent
         # compilation cache; the overflow shows as NaN instead of a frozen response
+        y, xs = y[:T], xs[:T]
         y = jnp.where(status != 0, jnp.nan, y)
-    elif int(status) != 0 or not np.all(np.isfinite(np.asarray(y))):
+        return (y, xs) if return_state else y
+    y = np.asarray(y)[:T]  # host slices (no program); the states only when asked for
+    if int(status) != 0 or not np.all(np.isfinite(y)):
         raise ValueError(_overflow_message(model, u, x0))
-    return (y, xs) if return_state else y
+    y = jax.device_put(y)
+    return (y, jax.device_put(np.asarray(xs)[:T])) if return_state else y
 
 
 _simulate = jit(simulate_status)  # one cacheable program (dt static, as in observe)
