@@ -6,8 +6,9 @@ program and per test file.
 
 Prints the programs with the most XLA compile time and the test files that compile most;
 saves benchmarks/results/suite_compiles.json (set MFMJAX_SUITE_COMPILES_KEEP=<folder> to keep
-the per-test log: one line per compilation, test id then JAX's message). Times are taken with the other xdist worker
-running: read shares, not absolute seconds. Persistent-cache hits are counted apart.
+the per-test log: one line per compilation, test id then JAX's message). Times are taken
+with the other xdist worker running: read shares, not absolute seconds. Persistent-cache hits
+are counted apart.
 """
 
 from __future__ import annotations
