@@ -33,6 +33,14 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
+def frozen(x) -> np.ndarray:
+    """A read-only float64 NumPy copy of a concrete setting: immutable like a JAX array, so a
+    model never shares a buffer that the caller may change later."""
+    out = np.array(x, dtype=np.float64)
+    out.flags.writeable = False
+    return out
+
+
 class ModulatingFunction(eqx.Module):
     r"""Settings of one Loeb-Cahen modulating function $\phi(t) = t^N (h-t)^M$ on $[0, h]$.
 
@@ -79,9 +87,8 @@ class ModulatingFunction(eqx.Module):
                 raise ValueError(
                     f"ModulatingFunction(): h={hv} exceeds h_max={h_max}; raise h_max"
                 )
-        # a concrete h stays on the host (NumPy float64): no device transfer per setting
-        self.h = (np.asarray(h, dtype=np.float64) if _is_concrete(h)
-                  else jnp.asarray(h, dtype=jnp.float64))
+        # a concrete h stays on the host (a read-only NumPy copy): no device transfer per setting
+        self.h = frozen(h) if _is_concrete(h) else jnp.asarray(h, dtype=jnp.float64)
         if h_max is not None and not h_max > 0:
             raise ValueError(f"ModulatingFunction(): h_max must be > 0 (got {h_max})")
         self.h_max = None if h_max is None else float(h_max)
@@ -92,8 +99,7 @@ def as_values(mf: ModulatingFunction) -> ModulatingFunction:
     programs take, so that a new setting is a new value, never a new program (the kernel
     length is fixed separately, by `_quadrature.kernel_bucket`)."""
     def value(x):  # numpy for concrete values (no device dispatch), jnp for tracers
-        return jnp.asarray(x, dtype=jnp.float64) if isinstance(x, jax.core.Tracer) else \
-            np.asarray(x, dtype=np.float64)
+        return jnp.asarray(x, dtype=jnp.float64) if isinstance(x, jax.core.Tracer) else frozen(x)
 
     return replace_fields(mf, N=value(mf.N), M=value(mf.M), h_max=None)
 

@@ -137,6 +137,26 @@ def test_no_recompile_second_call():
     assert identify_core._cached._cache_size() == before
 
 
+def test_settings_are_read_only_copies():
+    """A concrete h is kept as a read-only NumPy copy (no device transfer per setting), and
+    the model stores N, M and h the same way: changing the caller's array afterwards changes
+    neither the ModulatingFunction nor a model fitted with it (as with the JAX arrays they
+    replaced), and an in-place update is refused instead of changing a frozen Module."""
+    sig = simulated_experiment(third_order_two_input(), dt=0.01, n_samples=1200)
+    h = np.array(2.0)
+    mf = ModulatingFunction(4, 5, h)
+    model = mfmjax.identify(sig, Structure(3, (1, 0)), mf)
+    h[...] = 1.6
+    assert float(mf.h) == float(model.mf.h) == 2.0 and mf.h_max == 2.0
+    for x in (mf.h, model.mf.N, model.mf.M, model.mf.h):
+        assert isinstance(x, np.ndarray) and x.dtype == np.float64 and not x.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        mf.h *= 2
+    assert float(mf.h) == 2.0
+    again = mfmjax.identify(sig, Structure(3, (1, 0)), mf)
+    np.testing.assert_array_equal(np.asarray(again.theta), np.asarray(model.theta))
+
+
 @pytest.mark.parametrize(
     "st,mf,kw,match",
     [
