@@ -134,8 +134,8 @@ def switching_experiment(
         # `simulate`'s compiled program (called eagerly, every operation compiled on its own:
         # 180 small programs in one fuzz test)
         y, xs = simulate(model, u[a : min(b + 1, T)], x, dt=1.0, return_state=True)
-        ys.append(np.asarray(y[: b - a]))
-        x = np.asarray(xs[-1]) if b < T else x
+        ys.append(np.asarray(y)[: b - a])  # sliced on the host: no eager program per length
+        x = np.asarray(xs)[-1] if b < T else x
     y = np.concatenate(ys)
     if noise_std:
         y = y + noise_std * rng.standard_normal(T)
