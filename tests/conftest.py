@@ -44,15 +44,21 @@ def _fresh_jax_caches():
     _executables.clear()
 
 
-# The heaviest test files first (test time of the 2026-11-24 suite, in this order), the rest
-# in their collection order after them: pytest-xdist's `loadfile` hands whole files to the
-# workers in collection order, so a heavy file near the end (alphabetically,
-# test_settings_values.py) left the other worker idle while it ran.
-HEAVY_FIRST = ("test_search.py", "test_cache.py", "test_settings_values.py", "test_estimate.py",
-               "test_selection.py", "test_notebooks.py", "test_refine.py", "test_fuzz.py",
-               "test_online.py")
+# The test files in decreasing order of their time in the 2026-11-24 suite (seconds on one
+# worker, measured), the rest after them in collection order. With `--no-loadscope-reorder`
+# (pyproject addopts) pytest-xdist's `loadfile` hands whole files to the workers in this order,
+# each worker taking the next file when it is almost done: longest first, so the two workers
+# end together (without it, xdist orders files by their number of tests, and one worker sat
+# idle for 19 s at the end while the other ran test_notebooks.py).
+FILE_SECONDS = {"test_search.py": 78, "test_cache.py": 68, "test_settings_values.py": 60,
+                "test_selection.py": 53, "test_estimate.py": 53, "test_notebooks.py": 47,
+                "test_refine.py": 44, "test_fuzz.py": 42, "test_online.py": 38,
+                "test_identify.py": 33, "test_cli.py": 22, "test_output_error.py": 19,
+                "test_demo_modes.py": 19, "test_observers.py": 19, "test_boundary_cli.py": 18,
+                "test_quadrature.py": 18, "test_srivc.py": 15, "test_properties.py": 12,
+                "test_report_cli.py": 11, "test_linalg.py": 11, "test_gram_solve.py": 9,
+                "test_prepare.py": 7, "test_analysis.py": 6}
 
 
 def pytest_collection_modifyitems(items):
-    rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable within a file
+    items.sort(key=lambda item: -FILE_SECONDS.get(item.path.name, 0))  # stable within a file
