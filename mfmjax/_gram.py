@@ -16,7 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._boundary import require_x64
-from ._modulating import ModulatingFunction, phi_scaled
+from ._jit import jit
+from ._modulating import ModulatingFunction, as_values, phi_scaled
 from ._quadrature import (
     delayed_samples,
     gregory_weights,
@@ -96,15 +97,25 @@ def modulated_signals(
 ) -> ModulatedSignals:
     r"""All columns of $c(t)$ (eq. 6), scaled as described in the module docstring.
 
-    `length` is the static kernel length (default: what h_max and delay_max need); a support
+    `length` is the static kernel length (default: the `kernel_bucket` of what h_max and
+    delay_max need, as `identify` compiles it); a support
     longer than it is reported in `fits`, never truncated silently. `end` (may be traced): the
     Gram integral ends before sample `end` (default: the record's end), e.g. on a record padded
     to its `record_bucket`; the columns are causal, so those before `end` do not see the
-    padding."""
+    padding. Called outside jit/vmap/grad it runs one compiled program per structure, record
+    length, kernel length and rules: a new h, N, M, delay, t0 or name reuses it."""
     require_x64("modulated_signals")
-    dt = signals.dt
     if length is None:
-        length = kernel_length(static_span(signals, mf, delay_max), dt)
+        length = compiled_length(signals, mf, delay_max)
+    if end is not None and not isinstance(end, jax.core.Tracer):
+        end = np.asarray(end, dtype=np.int32)
+    return _modulated_program(Signals.unlabelled(signals), structure, as_values(mf), length, end)
+
+
+def modulated_columns(signals: Signals, structure: Structure, mf: ModulatingFunction,
+                      length: int, end=None) -> ModulatedSignals:
+    """`modulated_signals` inside a program, at the static kernel `length`."""
+    dt = signals.dt
     T = signals.n_samples
     K = signals.n_inputs
     data = [signals.u[:, k] for k in range(K)] + [jnp.ones(T, dtype=jnp.float64)]
@@ -168,11 +179,20 @@ def feedthrough_columns(signals: Signals, k: int, n: int, mf: ModulatingFunction
     return jnp.stack(cols, axis=1)
 
 
-def gram(ms: ModulatedSignals) -> jax.Array:
+def gram_matrix(ms: ModulatedSignals) -> jax.Array:
     r"""$G = \int c(t) c(t)^T dt$ (eq. 9-10), Gregory rule on the valid samples."""
+    return ms.columns.T @ (ms.weights[:, None] * ms.columns)
+
+
+def gram(ms: ModulatedSignals) -> jax.Array:
+    r"""$G = \int c(t) c(t)^T dt$ (eq. 9-10), Gregory rule on the valid samples (one compiled
+    program per shape outside jit/vmap/grad)."""
     require_x64("gram")
-    C = ms.columns
-    return C.T @ (ms.weights[:, None] * C)
+    return _gram_program(ms)
+
+
+_modulated_program = jit(modulated_columns)
+_gram_program = jit(gram_matrix)
 
 
 def check_record_length(signals: Signals, mf: ModulatingFunction, n_params: int):

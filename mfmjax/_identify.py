@@ -13,8 +13,8 @@ from ._gram import (
     check_record_length,
     compiled_length,
     feedthrough_corrections,
-    gram,
-    modulated_signals,
+    gram_matrix,
+    modulated_columns,
 )
 from ._jit import jit
 from ._linalg import hurwitz
@@ -96,8 +96,8 @@ def identify_core(signals, structure, mf, eta, length: int, end=None,
     with a root in the closed right half plane sets `Status.UNSTABLE` (the Routh test
     `hurwitz`, as the search's validation and SRIVC apply it), except where a_n vanished or
     values are non-finite: those bits already say the coefficients are no model."""
-    ms = modulated_signals(signals, structure, mf, length=length, end=end)
-    G = gram(ms)
+    ms = modulated_columns(signals, structure, mf, length, end)
+    G = gram_matrix(ms)
     K = signals.n_inputs
     n = structure.n
     alive = jnp.sqrt(jnp.maximum(jnp.diagonal(G), 0.0)) > DEAD_COLUMN_RTOL * ms.bounds
@@ -110,7 +110,7 @@ def identify_core(signals, structure, mf, eta, length: int, end=None,
             an = jnp.where(theta[n] != 0, theta[n], 1.0)
             fix = sum(theta[starts[k] + n] / an * delta for k, delta in corrections)
             ms = eqx.tree_at(lambda m: m.columns, ms, ms.columns.at[:, : n + 1].set(y_cols - fix))
-            G = gram(ms)
+            G = gram_matrix(ms)
             theta, _, _ = constrained_solve(G, eta, alive, conditioning=False)
         theta, cond, reduced = constrained_solve(G, eta, alive)
     finite = jnp.isfinite(signals.y).all() & jnp.isfinite(signals.u).all()

@@ -71,6 +71,31 @@ def test_identify_new_settings_inside_a_bucket_compile_once(record):
     assert sum("identify_core" in name for name in first) <= 1
 
 
+def test_modulated_signals_and_gram_new_settings_compile_nothing(record):
+    """The public `modulated_signals` and `gram` outside jit: one program per structure, record
+    length and kernel bucket; a new (N, M, h), delay, t0 or name compiles nothing (eagerly, each
+    new h compiled every primitive of the kernels again: 2-3.6 s per call on this machine)."""
+    settings = _settings(6)
+    mfmjax.gram(mfmjax.modulated_signals(record, ST, ModulatingFunction(*settings[0])))
+    relabelled = Signals(record.y, record.u, dt=DT, intersample=record.intersample, t0=12.5,
+                         output_name="T", input_names=("q", "p"), delays=(0.03, 0.0))
+    with compiles() as names:
+        Gs = [np.asarray(mfmjax.gram(mfmjax.modulated_signals(sig, ST, ModulatingFunction(*s))))
+              for s in settings[1:5] for sig in (record, relabelled)]  # (the last + delay: 96)
+    assert names == [], f"new settings compiled {names}"
+    # the values reached the program: the Gram of eq. (9) over the columns of eq. (6) equals
+    # identify's (the same body inside its program) to rounding: within 1e-12 of its largest
+    from mfmjax._gram import compiled_length, gram_matrix, modulated_columns
+    from mfmjax._modulating import as_values
+
+    mf = ModulatingFunction(*settings[3])
+    ref = jax.jit(lambda m: gram_matrix(modulated_columns(
+        record, ST, m, compiled_length(record, mf))))(as_values(mf))
+    np.testing.assert_allclose(Gs[4], np.asarray(ref), rtol=0,
+                               atol=1e-12 * float(np.max(np.abs(ref))))
+    assert not np.allclose(Gs[4], Gs[5])  # the delay changed the input columns
+
+
 def test_identify_values_equal_exact_kernel_length(record):
     """Bucketing only pads the kernel with exact zeros: parameters equal those of the exact
     length to rounding (the summation order of the convolution changes), 1e-10 relative."""
