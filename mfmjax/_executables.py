@@ -6,7 +6,7 @@ program text, so every new process still traces and lowers each program before i
 up: 0.6 s of the warm-cache `mfmjax identify` CLI's 1.8 s. A stored executable is keyed
 instead by what determines the program (the function, its static arguments, the shapes and
 dtypes of its array arguments, the compiler options, a fingerprint of mfmjax's source and the
-versions of jax, jaxlib, equinox and numpy, the float64 flag, `XLA_FLAGS`, the device and the
+versions of jax, jaxlib, equinox, optimistix, lineax and numpy, the float64 flag, `XLA_FLAGS`, the device and the
 CPU's features), and
 holds the serialized executable (`jax.experimental.serialize_executable`).
 
@@ -30,6 +30,7 @@ import os
 import pickle
 import re
 import threading
+import types
 
 import jax
 import numpy as np
@@ -38,6 +39,7 @@ _PREFIX = "mfmjax-exe-"
 _SUFFIX = "-cache"  # the compile cache's `_prune` counts, ages and deletes these files too
 _state = {"directory": None}
 _memory: dict = {}  # (wrapper, static, treedef, avals) -> jax Compiled, or None: not stored
+_by_name: dict = {}  # file name -> jax Compiled, loaded or compiled in this process
 stats = {"loaded": 0, "written": 0, "compiled": 0}  # this process's counts (tests, benchmarks)
 loaded: list[str] = []  # names of the programs loaded, as JAX's compile log names them
 _compiling = threading.Lock()  # `_fresh_compile` switches a process-wide flag: one at a time
@@ -54,11 +56,13 @@ def enable(directory: str | None) -> None:
     """Store executables in `directory` (None: stop). Drops this process's loaded ones."""
     _state["directory"] = directory if _preprocess is not None else None
     _memory.clear()
+    _by_name.clear()
 
 
 def clear() -> None:
     """Drop this process's loaded and compiled executables (as `jax.clear_caches` does JAX's)."""
     _memory.clear()
+    _by_name.clear()
 
 
 def active() -> bool:
@@ -69,6 +73,8 @@ def active() -> bool:
 def _fingerprint() -> str:
     """What makes an executable valid beyond its arguments: mfmjax's source, the versions of
     the libraries that trace and compile it, and the machine's JAX settings."""
+    from importlib.metadata import version
+
     import equinox
     import jaxlib
 
@@ -84,6 +90,7 @@ def _fingerprint() -> str:
     device = jax.devices()[0]
     h.update(_cpu_features().encode())
     h.update(repr((jax.__version__, jaxlib.__version__, equinox.__version__, np.__version__,
+                   version("optimistix"), version("lineax"),
                    bool(jax.config.jax_enable_x64), str(jax.config.jax_default_matmul_precision),
                    os.environ.get("XLA_FLAGS", ""), device.platform, device.device_kind,
                    jax.device_count())).encode())
@@ -118,6 +125,20 @@ def _dumps(obj) -> bytes:
     return buf.getvalue()
 
 
+def _named(static, depth=0):
+    """`static` with every plain function in its tuples, lists and dicts named by `_identity`
+    (e.g. optimistix's default norm `max_norm` inside a solver), not by its memory address."""
+    if depth > 8:
+        return static
+    if isinstance(static, tuple | list):
+        return type(static)(_named(v, depth + 1) for v in static)
+    if isinstance(static, dict):
+        return {k: _named(v, depth + 1) for k, v in static.items()}
+    if isinstance(static, types.FunctionType):
+        return ("function", _identity(static))
+    return static
+
+
 def _identity(fun, depth=0):
     """What names a function's program: its module and qualified name and, for a closure made
     by a factory (`_srivc._program`), the values it captured and its defaults, functions among
@@ -133,7 +154,7 @@ def _identity(fun, depth=0):
 def _disk_name(fun, options, static, tree, avals) -> str | None:
     """The file name of a program, or None when its static arguments or captured values do
     not print stably."""
-    text = repr((_identity(fun), sorted(options.items()), static[1:], tree, avals))
+    text = repr((_identity(fun), sorted(options.items()), _named(static[1:]), tree, avals))
     if " at 0x" in text or "..." in text or "array(" in text.lower():  # a memory address,
         # or a NumPy or JAX array, whose printout rounds to 8 digits
         return None
@@ -248,6 +269,12 @@ def call(wrapper, fun, options, args, kwargs, *, filtered=True):
         if name is None:
             _memory[key] = None
             return wrapper(*args, **kwargs)
+        compiled = _by_name.get(name)
+        if compiled is not None:  # the same program under another in-memory key (static
+            # arguments whose treedefs compare unequal between calls: optimistix's solver
+            # state): loaded or compiled once per process
+            _memory[key] = compiled
+            return finish(compiled(*run_args, **run_kwargs))
         path = os.path.join(_state["directory"], name)
         compiled = _load(path)
         if compiled is not None:
@@ -257,12 +284,14 @@ def call(wrapper, fun, options, args, kwargs, *, filtered=True):
                 _remove(path)
                 compiled = None
             else:
-                _memory[key] = compiled
+                _memory[key] = _by_name[name] = compiled
                 loaded.append(f"jit({fun.__name__})")
                 return finish(out)
         lowered = wrapper.lower(*args, **kwargs)
         compiled = _memory[key] = _compile_and_store(
             lowered.lowered if filtered else lowered, path)
+        if compiled is not None:
+            _by_name[name] = compiled
     if compiled is None:
         return wrapper(*args, **kwargs)
     return finish(compiled(*run_args, **run_kwargs))

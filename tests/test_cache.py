@@ -254,6 +254,16 @@ def test_stored_executable_names_hold_what_the_program_depends_on():
     assert name(factory("zoh"), (None, np.array([0.1, 0.2]))) is None
     assert name(factory(jax.numpy.array([0.1, 0.2]))) is None  # printed as Array([...])
     assert name(factory("zoh"), (None, (0.1, 0.2))) is not None
+    # a plain function among the static arguments (optimistix's BFGS holds its norm) is named
+    # by its module and qualified name, not by its address: refine's programs are stored
+    from optimistix._misc import max_norm, rms_norm
+
+    assert name(factory("zoh"), (None, (1e-6, max_norm))) is not None
+    assert name(factory("zoh"), (None, (1e-6, max_norm))) == name(factory("zoh"),
+                                                                 (None, (1e-6, max_norm)))
+    assert name(factory("zoh"), (None, (1e-6, max_norm))) != name(factory("zoh"),
+                                                                 (None, (1e-6, rms_norm)))
+    assert name(factory("zoh"), (None, {"norm": factory(object())})) is None  # captured address
 
 
 # The other public paths, run in two processes sharing one cache folder (a digest per result)
@@ -299,7 +309,9 @@ def test_stored_executables_of_the_other_public_paths_load_and_agree(tmp_path):
     """search, scores, refine, frequency_response, moving_final_states and the on-line
     identifier: a second process loads every program the first stored and returns bitwise
     the same results (the probe that found the LAPACK crash ran every public function this
-    way; identify, simulate, observe, srivc and output_error are in the tests above)."""
+    way; identify, simulate, observe, srivc and output_error are in the tests above). refine's
+    BFGS programs are stored too, and each is loaded once although optimistix's state makes
+    a new in-memory key at every step (loaded == written)."""
     script = tmp_path / "more.py"
     script.write_text(_MORE)
     cold = _run(script, tmp_path / "cache")
@@ -309,6 +321,7 @@ def test_stored_executables_of_the_other_public_paths_load_and_agree(tmp_path):
         assert warm[name][1] == {"loaded": stats["written"], "written": 0, "compiled": 0}, (
             name, stats, warm[name][1])
     assert sum(s["written"] for _, s in cold.values()) >= 6
+    assert cold["refine"][1]["written"] >= 3  # init, step, terminate
 
 
 def test_public_programs_hold_no_callbacks():
