@@ -14,6 +14,8 @@ directory, a second process: read the programs back). Jobs:
 - in-library `mfmjax.output_error` first call (after import, data and the MFM start from
   `identify`, timed apart) on the same CSV, from the identify job's model, and a second call
   in the same process (warm process);
+- in-library `mfmjax.refine(vary=("h",), max_steps=5)` first call (after import, data and the
+  MFM start, timed apart) on the same CSV, and a second call (warm process); no peer;
 - `mfmjax online` (CLI) on the forehearth's experiment 1 (`mfmjax dataset forehearth`, 8001
   samples, paper-mode Algorithm 1, input-1 delay 265 s);
 - in-library `mfmjax.search(score="J", simulate=False)` first call (after import and data
@@ -50,7 +52,7 @@ T_CLI = 3000
 CLI_GRID = dict(n="1:2", N="3:5", M="3:5", h=[float(v) for v in np.linspace(40, 250, 18)])
 IDENTIFY = dict(n=2, m=(1, 1), N=4, M=4, h=120.0)
 MODES = ("no cache", "cold", "warm")
-JOBS = ("demo", "search", "identify", "output_error", "online", "lib")
+JOBS = ("demo", "search", "identify", "output_error", "refine", "online", "lib")
 
 
 def lib_grid(quick: bool) -> dict:
@@ -150,6 +152,32 @@ def child_oe(csv: str) -> dict:
             "E": float(fit.E)}
 
 
+def child_refine(csv: str) -> dict:
+    import warnings
+
+    t0 = time.perf_counter()
+    import mfmjax
+
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        mfmjax.enable_compile_cache()
+    t1 = time.perf_counter()
+    y, u = _csv_signals(csv)
+    sig = mfmjax.Signals(y, u, dt=1.0, intersample=("foh", "zoh"))
+    start = mfmjax.identify(sig, mfmjax.Structure(IDENTIFY["n"], IDENTIFY["m"]),
+                            mfmjax.ModulatingFunction(IDENTIFY["N"], IDENTIFY["M"],
+                                                      IDENTIFY["h"]))
+    t2 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # max_steps reached: the steps are what is timed
+        r = mfmjax.refine(sig, start, vary=("h",), max_steps=5)
+        t3 = time.perf_counter()
+        again = mfmjax.refine(sig, start, vary=("h",), max_steps=5)
+    t4 = time.perf_counter()
+    assert np.array_equal(r.path, again.path)
+    return {"import_s": t1 - t0, "data_s": t2 - t1, "first_s": t3 - t2, "second_s": t4 - t3,
+            "steps": r.steps, "h": r.settings["h"]}
+
+
 def child_peer_oe(csv: str) -> dict:
     from types import SimpleNamespace
 
@@ -238,6 +266,8 @@ def main():
             res = child_peer(args.child[1], args.child[2] if len(args.child) > 2 else None)
         elif kind == "oe":
             res = child_oe(args.child[1])
+        elif kind == "refine":
+            res = child_refine(args.child[1])
         elif kind == "peer_oe":
             res = child_peer_oe(args.child[1])
         else:
@@ -324,6 +354,11 @@ def main():
               f"(E {r['E']:.6g} against {res['warm']['E']:.6g})", flush=True)
         out["jobs"]["output_error_lib"] = res
 
+    if "refine" in jobs:
+        print("in-library refine, first call in a new process:", flush=True)
+        out["jobs"]["refine_lib"] = lib_job("refine", ["refine", csv], "cache-refine",
+                                            lambda r: f"{r['steps']} steps")
+
     print("in-library search, first call in a new process:", flush=True)
     for grid in (() if "lib" not in jobs else ("small",) if args.quick else ("small", "big")):
         res = lib_job(grid, ["lib", grid], f"cache-lib-{grid}",
@@ -343,6 +378,10 @@ def main():
             vals = [res[m]["first_s"] for m in MODES]
             peer = res["numpy_shared_peer"]["run_s"]
             label = f"search {res['cold']['candidates']} (1st call)"
+        elif key == "refine_lib":
+            vals = [res[m]["first_s"] for m in MODES]
+            peer = float("nan")
+            label = "refine (1st call)"
         elif key == "output_error_lib":
             vals = [res[m]["first_s"] for m in MODES]
             peer = res["scipy_least_squares_peer"]["run_s"]
@@ -371,7 +410,7 @@ def main():
         "CLI rows and the identify peer: wall time of a new process (interpreter + imports "
         "+ work); search_lib rows: the first search call after import and data set-up; "
         "its peer: the NumPy whole-grid run time (import and data excluded).",
-        "demo and online have no NumPy peer.",
+        "demo, online and refine have no NumPy peer.",
         "output_error rows: the first output_error call after import, data and the MFM start "
         "(identify); its peer: SciPy least_squares from the NumPy MFM start (run time).",
         "the CLI search computes E and fit for every candidate (simulation); the peer J only.",
