@@ -58,7 +58,7 @@ if os.environ.get(LOG_DIR):
 def summarise(log_dir: str) -> dict:
     seconds, count, hits = collections.Counter(), collections.Counter(), collections.Counter()
     per_file = collections.Counter()
-    for path in glob.glob(os.path.join(log_dir, "*.log")):
+    for path in glob.glob(os.path.join(log_dir, "[0-9]*.log")):  # the workers' (by pid)
         with open(path) as fh:
             for line in fh:
                 test, msg = line.rstrip("\n").split("\t", 1)

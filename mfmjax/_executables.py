@@ -73,8 +73,6 @@ def active() -> bool:
 def _fingerprint() -> str:
     """What makes an executable valid beyond its arguments: mfmjax's source, the versions of
     the libraries that trace and compile it, and the machine's JAX settings."""
-    from importlib.metadata import version
-
     import equinox
     import jaxlib
 
@@ -90,11 +88,21 @@ def _fingerprint() -> str:
     device = jax.devices()[0]
     h.update(_cpu_features().encode())
     h.update(repr((jax.__version__, jaxlib.__version__, equinox.__version__, np.__version__,
-                   version("optimistix"), version("lineax"),
+                   _version_of("optimistix"), _version_of("lineax"),
                    bool(jax.config.jax_enable_x64), str(jax.config.jax_default_matmul_precision),
                    os.environ.get("XLA_FLAGS", ""), device.platform, device.device_kind,
                    jax.device_count())).encode())
     return h.hexdigest()
+
+
+def _version_of(package: str) -> str:
+    """An installed package's version, from its metadata (importing optimistix takes 0.13 s)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(package)
+    except PackageNotFoundError:  # pragma: no cover - no metadata: the module's own
+        return str(getattr(__import__(package), "__version__", "unknown"))
 
 
 def _cpu_features() -> str:
