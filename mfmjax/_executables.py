@@ -29,6 +29,7 @@ import io
 import os
 import pickle
 import re
+import sys
 import threading
 import types
 
@@ -133,18 +134,31 @@ def _dumps(obj) -> bytes:
     return buf.getvalue()
 
 
+# packages whose functions may be named in a key: their source or version is in the fingerprint
+_NAMED_PACKAGES = ("mfmjax", "optimistix", "lineax", "equinox", "jax")
+
+
 def _named(static, depth=0):
-    """`static` with every plain function in its tuples, lists and dicts named by `_identity`
-    (e.g. optimistix's default norm `max_norm` inside a solver), not by its memory address."""
+    """`static` with every module-level function of a fingerprinted package in its tuples,
+    lists and dicts named by module and qualified name (e.g. optimistix's default norm
+    `max_norm` inside a solver), not by its memory address. Any other function (a lambda, a
+    closure, a user's function, whose code the name would not pin down) keeps its address,
+    so its program is never stored."""
     if depth > 8:
         return static
     if isinstance(static, tuple | list):
         return type(static)(_named(v, depth + 1) for v in static)
     if isinstance(static, dict):
         return {k: _named(v, depth + 1) for k, v in static.items()}
-    if isinstance(static, types.FunctionType):
-        return ("function", _identity(static))
+    if isinstance(static, types.FunctionType) and _module_level(static):
+        return ("function", static.__module__, static.__qualname__)
     return static
+
+
+def _module_level(fun) -> bool:
+    module = sys.modules.get(fun.__module__)
+    return (fun.__module__.split(".")[0] in _NAMED_PACKAGES and module is not None
+            and getattr(module, fun.__qualname__, None) is fun)
 
 
 def _identity(fun, depth=0):
@@ -278,9 +292,9 @@ def call(wrapper, fun, options, args, kwargs, *, filtered=True):
             _memory[key] = None
             return wrapper(*args, **kwargs)
         compiled = _by_name.get(name)
-        if compiled is not None:  # the same program under another in-memory key (static
-            # arguments whose treedefs compare unequal between calls: optimistix's solver
-            # state): loaded or compiled once per process
+        if compiled is not None:  # the same program under another in-memory key: a state
+            # returned by a loaded executable holds unpickled copies of lineax's tags, equal in
+            # print but not in identity, so refine's next BFGS step has a new key
             _memory[key] = compiled
             return finish(compiled(*run_args, **run_kwargs))
         path = os.path.join(_state["directory"], name)

@@ -10,6 +10,8 @@ $\theta$. The Gram integral runs over the valid samples $t_k \ge t_0 + \max_k(\t
 
 from __future__ import annotations
 
+import operator
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -103,10 +105,10 @@ def modulated_signals(
     Gram integral ends before sample `end` (default: the record's end), e.g. on a record padded
     to its `record_bucket`; the columns are causal, so those before `end` do not see the
     padding. Called outside jit/vmap/grad it runs one compiled program per structure, record
-    length, kernel length and rules: a new h, N, M, delay, t0 or name reuses it."""
+    length, sampling interval, rules, offset term and kernel length: a new h, N, M, delay,
+    t0 or name reuses it."""
     require_x64("modulated_signals")
-    if length is None:
-        length = compiled_length(signals, mf, delay_max)
+    length = compiled_length(signals, mf, delay_max) if length is None else operator.index(length)
     if end is not None and not isinstance(end, jax.core.Tracer):
         end = np.asarray(end, dtype=np.int32)
     return _modulated_program(Signals.unlabelled(signals), structure, as_values(mf), length, end)

@@ -264,6 +264,12 @@ def test_stored_executable_names_hold_what_the_program_depends_on():
     assert name(factory("zoh"), (None, (1e-6, max_norm))) != name(factory("zoh"),
                                                                  (None, (1e-6, rms_norm)))
     assert name(factory("zoh"), (None, {"norm": factory(object())})) is None  # captured address
+    # a lambda, a closure or a user's function is not pinned down by its name (two lambdas of
+    # one scope share it; an edited function keeps it): it keeps its program unstored
+    twins = [lambda x: x + 1, lambda x: x * 10]
+    assert twins[0].__qualname__ == twins[1].__qualname__
+    for fn in (*twins, factory):  # `factory`: a function of this test module
+        assert name(factory("zoh"), (None, (1e-6, fn))) is None, fn
 
 
 # The other public paths, run in two processes sharing one cache folder (a digest per result)
@@ -310,8 +316,9 @@ def test_stored_executables_of_the_other_public_paths_load_and_agree(tmp_path):
     identifier: a second process loads every program the first stored and returns bitwise
     the same results (the probe that found the LAPACK crash ran every public function this
     way; identify, simulate, observe, srivc and output_error are in the tests above). refine's
-    BFGS programs are stored too, and each is loaded once although optimistix's state makes
-    a new in-memory key at every step (loaded == written)."""
+    BFGS programs are stored too, and each is loaded once although the state a loaded step
+    returns (unpickled lineax tags) gives the next step a new in-memory key (loaded ==
+    written)."""
     script = tmp_path / "more.py"
     script.write_text(_MORE)
     cold = _run(script, tmp_path / "cache")

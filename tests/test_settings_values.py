@@ -94,6 +94,9 @@ def test_modulated_signals_and_gram_new_settings_compile_nothing(record):
     np.testing.assert_allclose(Gs[4], np.asarray(ref), rtol=0,
                                atol=1e-12 * float(np.max(np.abs(ref))))
     assert not np.allclose(Gs[4], Gs[5])  # the delay changed the input columns
+    # an explicit length may be any integer type (a NumPy one is not traced as a value)
+    G64 = mfmjax.gram(mfmjax.modulated_signals(record, ST, mf, length=np.int64(64)))
+    np.testing.assert_array_equal(np.asarray(G64), Gs[4])
 
 
 def test_identify_values_equal_exact_kernel_length(record):
