@@ -130,7 +130,10 @@ def _csv_signals(csv: str):
     return data[:, 1], data[:, 2:]
 
 
-def child_oe(csv: str) -> dict:
+def _first_and_second(csv: str, fit) -> dict:
+    """Import mfmjax (its cache on when the parent set a folder), read the CSV, the MFM start
+    (`identify`), then `fit(mfmjax, signals, start)` twice: the seconds of each stage and the
+    two results."""
     t0 = time.perf_counter()
     import mfmjax
 
@@ -143,39 +146,30 @@ def child_oe(csv: str) -> dict:
                             mfmjax.ModulatingFunction(IDENTIFY["N"], IDENTIFY["M"],
                                                       IDENTIFY["h"]))
     t2 = time.perf_counter()
-    fit = mfmjax.output_error(sig, start)
+    first = fit(mfmjax, sig, start)
     t3 = time.perf_counter()
-    again = mfmjax.output_error(sig, start)
+    second = fit(mfmjax, sig, start)
     t4 = time.perf_counter()
+    return {"import_s": t1 - t0, "data_s": t2 - t1, "first_s": t3 - t2,
+            "second_s": t4 - t3}, first, second
+
+
+def child_oe(csv: str) -> dict:
+    times, fit, again = _first_and_second(csv, lambda mfmjax, sig, start: mfmjax.output_error(
+        sig, start))
     assert fit.converged and np.array_equal(fit.theta, again.theta)
-    return {"import_s": t1 - t0, "data_s": t2 - t1, "first_s": t3 - t2, "second_s": t4 - t3,
-            "E": float(fit.E)}
+    return dict(times, E=float(fit.E))
 
 
 def child_refine(csv: str) -> dict:
     import warnings
 
-    t0 = time.perf_counter()
-    import mfmjax
-
-    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        mfmjax.enable_compile_cache()
-    t1 = time.perf_counter()
-    y, u = _csv_signals(csv)
-    sig = mfmjax.Signals(y, u, dt=1.0, intersample=("foh", "zoh"))
-    start = mfmjax.identify(sig, mfmjax.Structure(IDENTIFY["n"], IDENTIFY["m"]),
-                            mfmjax.ModulatingFunction(IDENTIFY["N"], IDENTIFY["M"],
-                                                      IDENTIFY["h"]))
-    t2 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # max_steps reached: the steps are what is timed
-        r = mfmjax.refine(sig, start, vary=("h",), max_steps=5)
-        t3 = time.perf_counter()
-        again = mfmjax.refine(sig, start, vary=("h",), max_steps=5)
-    t4 = time.perf_counter()
+        times, r, again = _first_and_second(csv, lambda mfmjax, sig, start: mfmjax.refine(
+            sig, start, vary=("h",), max_steps=5))
     assert np.array_equal(r.path, again.path)
-    return {"import_s": t1 - t0, "data_s": t2 - t1, "first_s": t3 - t2, "second_s": t4 - t3,
-            "steps": r.steps, "h": r.settings["h"]}
+    return dict(times, steps=r.steps, h=r.settings["h"])
 
 
 def child_peer_oe(csv: str) -> dict:
