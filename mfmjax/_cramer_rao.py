@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._jit import jit
+from ._linalg import small_matmul
 from ._model import Model
 from ._output_error import free_parameters, with_parameters
 from ._simulate import forced_response
@@ -51,7 +52,7 @@ def simulated_output(model, u, dt, start, length):
         di = jax.lax.dynamic_slice_in_dim(direct, start, length)
 
         def step(x, d):
-            return Phi @ x + d, ss.C[0] @ x
+            return small_matmul(Phi, x) + d, small_matmul(ss.C, x)[0]
 
         _, ys = jax.lax.scan(step, x0, dr)
         return ys + di

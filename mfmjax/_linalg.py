@@ -20,6 +20,15 @@ _SQUARINGS = 48  # static bound on expm squarings (||A|| up to 2^47): static tri
 _TAYLOR = 18  # Taylor degree on ||A / 2^s|| <= 1/2: truncation < 1e-21
 
 
+def small_matmul(A, x):
+    """A (n, n) @ x (n, ...) as n broadcast products summed: inside a `lax.scan` body these
+    fuse into one loop, where a dot is a call of its own at every step (and, under
+    forward-mode differentiation, one per tangent product). Measured on 8192 samples, n = 4:
+    output error's residual with its 10-column Jacobian 2.0 against 8.9 ms."""
+    shape = (-1,) + (1,) * (x.ndim - 1)
+    return sum(A[:, j].reshape(shape) * x[j] for j in range(A.shape[1]))
+
+
 def solve(A, b):
     """Solve A x = b (A (n, n), b (n,)) by Gaussian elimination with partial pivoting."""
     n = A.shape[-1]

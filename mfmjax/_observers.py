@@ -22,7 +22,7 @@ import numpy as np
 from . import _boundary as _b
 from ._boundary import require_x64
 from ._jit import jit
-from ._linalg import conditioning_eigvals, solve
+from ._linalg import conditioning_eigvals, small_matmul, solve
 from ._model import Model
 from ._pytree import replace_fields
 from ._quadrature import edge_padded, gregory_weights, record_bucket
@@ -78,7 +78,8 @@ def observe_forced(
 
     def step(carry, d):  # forced response from rest and the free-response rows C e^{A t_j}
         x, row = carry
-        return (Phi @ x + d, row @ Phi), (ss.C[0] @ x, row)
+        return ((small_matmul(Phi, x) + d, small_matmul(Phi.T, row)),
+                (small_matmul(ss.C, x)[0], row))
 
     _, (y_f, rows) = jax.lax.scan(step, (jnp.zeros(n), ss.C[0]), dr)
     y_forced = y_f + di
@@ -100,7 +101,7 @@ def observe_forced(
     cond = lam[1] / jnp.maximum(lam[0], lam[1] * jnp.finfo(jnp.float64).eps)
 
     def traj(x, d):
-        return Phi @ x + d, x
+        return small_matmul(Phi, x) + d, x
 
     _, xs = jax.lax.scan(traj, x0, dr)
     y_sim = xs @ ss.C[0] + di

@@ -18,6 +18,7 @@ import numpy as np
 
 from . import _padded as padded
 from ._jit import device, jit
+from ._linalg import small_matmul
 from ._model import Model, is_stable
 from ._optim import USABLE
 from ._pytree import replace_fields
@@ -147,7 +148,7 @@ class _Residual(eqx.Module):
                                                            self.start + jnp.arange(self.length))
 
         def step(x, d):
-            return Phi @ x + d, ss.C[0] @ x
+            return small_matmul(Phi, x) + d, small_matmul(ss.C, x)[0]
 
         _, ys = jax.lax.scan(step, self.x_init + self.x_scale * z[p:], drive)
         return jnp.where(jnp.arange(self.length) < self.valid, self.y - (ys + direct), 0.0)

@@ -19,7 +19,7 @@ import numpy as np
 from . import _boundary as _b
 from ._boundary import require_x64
 from ._jit import jit
-from ._linalg import expm
+from ._linalg import expm, small_matmul
 from ._model import Model
 from ._quadrature import delayed_samples, edge_padded, record_bucket, shift_samples, split_delay
 from ._statespace import state_space
@@ -97,7 +97,7 @@ def simulate_status(model: Model, u, x0, dt: float, valid=None):
 
     def step(carry, d):
         (x, bad), (dr, counts) = carry, d
-        x_new = Phi @ x + dr
+        x_new = small_matmul(Phi, x) + dr
         blown = bad | (counts & ~jnp.all(jnp.abs(x_new) < _BIG))
         x_new = jnp.where(blown, x, x_new)
         return (x_new, blown), x

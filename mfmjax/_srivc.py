@@ -58,7 +58,7 @@ from . import _boundary as _b
 from . import _padded as padded
 from ._batch import as_records, map_pairs
 from ._jit import array_jit
-from ._linalg import hurwitz, solve
+from ._linalg import hurwitz, small_matmul, solve
 from ._model import Model
 from ._quadrature import delayed_samples, edge_padded, record_bucket, shift_samples, split_delay
 from ._signals import Signals
@@ -123,15 +123,10 @@ def _names(n, m, has_offset):
     return tuple(names + (["offset"] if has_offset else []))
 
 
-def _mm(Phi, z):
-    """Phi (n, n) @ z (n, S) written elementwise (fuses inside the scan; see module)."""
-    return sum(Phi[:, j, None] * z[j][None, :] for j in range(Phi.shape[0]))
-
-
 def _filter(Phi, drive):
     """States z_j (T, n, S) of z_{j+1} = Phi z_j + drive_j from z_0 = 0."""
     def step(z, d):
-        return _mm(Phi, z) + d, z
+        return small_matmul(Phi, z) + d, z
 
     return jax.lax.scan(step, jnp.zeros(drive.shape[1:]), drive)[1]
 
