@@ -189,6 +189,24 @@ class Model(eqx.Module):
         return out
 
 
+def simulation_form(model: Model) -> Model:
+    r"""`model` as the simulations and observers see it: unlabelled, every numerator zero-padded
+    to order n ($b_{kj} = 0$ for $m_k < j \le n$: the same realisation, eq. 18),
+    without the identification's theta and MF settings. Every structure of order n with the
+    same inputs, rules and offset term is then one pytree, so `simulate` and the observers
+    compile one program per order, not one per structure. NumPy for a concrete model (no
+    program), JAX for a traced one."""
+    from ._boundary import is_traced
+
+    n, K = model.n, model.n_inputs
+    xp = jnp if any(is_traced(bk) for bk in model.b) else np
+    b = tuple(xp.concatenate([xp.asarray(bk, dtype=np.float64), xp.zeros(n + 1 - bk.shape[0])])
+              for bk in model.b)
+    return replace_fields(model, b=b, theta=np.zeros(0), mf=None, output_name="y",
+                          structure=Structure(n, [n] * K),
+                          input_names=tuple(f"u{k + 1}" for k in range(K)))
+
+
 def is_stable(a) -> bool:
     """A(s) (coefficients a_0..a_n, host) has every root in the open left half plane."""
     return bool(np.all(np.roots(np.asarray(a, dtype=np.float64)[::-1]).real < 0))

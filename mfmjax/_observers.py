@@ -23,7 +23,7 @@ from . import _boundary as _b
 from ._boundary import require_x64
 from ._jit import jit
 from ._linalg import conditioning_eigvals, small_matmul, solve
-from ._model import Model
+from ._model import Model, simulation_form
 from ._pytree import replace_fields
 from ._quadrature import edge_padded, gregory_weights, record_bucket
 from ._signals import Signals
@@ -209,12 +209,12 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
                 f"{length} samples of the window"
             )
     if _b.is_traced(signals.y) or _b.is_traced(signals.u):
-        obs = _observe(Model.unlabelled(model), signals.y, signals.u, signals.dt,
+        obs = _observe(simulation_form(model), signals.y, signals.u, signals.dt,
                        jnp.asarray(start, dtype=jnp.int32), length, ob)
         return checked(obs, "observe")
     y, u, bound = padded_window(signals, start, length)
-    # `Model.unlabelled(model)`: a bound method of an equinox Module is built at every access
-    obs = _observe(Model.unlabelled(model), y, u, signals.dt, np.int32(start), bound,
+    # one program per order n (`simulation_form`), whatever the numerator orders
+    obs = _observe(simulation_form(model), y, u, signals.dt, np.int32(start), bound,
                    np.int32(length if ob is None else ob), np.int32(length))
     if _b.is_traced(obs.y_sim):  # a traced model
         y_sim = obs.y_sim[:length]
@@ -271,7 +271,7 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
         )
     _window(model, signals, (signals.t0, signals.t0 + (length - 1) * signals.dt),
             "moving_final_states")
-    return _moving(Model.unlabelled(model), signals.y, signals.u, signals.dt, ends, length)
+    return _moving(simulation_form(model), signals.y, signals.u, signals.dt, ends, length)
 
 
 @jit

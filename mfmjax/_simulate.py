@@ -20,7 +20,7 @@ from . import _boundary as _b
 from ._boundary import require_x64
 from ._jit import jit
 from ._linalg import expm, small_matmul
-from ._model import Model
+from ._model import Model, simulation_form
 from ._quadrature import delayed_samples, edge_padded, record_bucket, shift_samples, split_delay
 from ._statespace import state_space
 from ._status import Status
@@ -146,8 +146,8 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
         args = (u, x0, dt)
     else:
         args = (edge_padded(u, record_bucket(T) - T), x0, dt, np.int32(T))
-    # `Model.unlabelled(model)`: a bound method of an equinox Module is built at every access
-    y, xs, status = _simulate(Model.unlabelled(model), *args)
+    # one program per order n (`simulation_form`), whatever the numerator orders
+    y, xs, status = _simulate(simulation_form(model), *args)
     if _b.is_traced(status) or _b.is_traced(y):
         # no eqx.error_if here: a program holding one is never written to the persistent
         # compilation cache; the overflow shows as NaN instead of a frozen response

@@ -172,6 +172,52 @@ def test_simulate_new_record_length_inside_a_bucket_compiles_nothing():
         mfmjax.simulate(unstable, np.ones(1200), dt=dt)
 
 
+def test_simulate_and_observers_new_structure_of_the_same_order_compile_nothing():
+    """`simulate`, `observe` and `moving_final_states` run a model with every numerator
+    zero-padded to its order n (`simulation_form`): one program per order, inputs, rules and
+    offset term, not per structure. Three new structures of order 2 compile nothing, and each
+    response equals the one of the structure's own program (the same realisation, eq. 18:
+    the padded coefficients are zeros). That program folds its constant zeros, so the two may
+    differ by rounding: a few ulps of each step's sum, compounded over the recursion, bounded
+    here by 1e-13 of the response's scale. The observers' E sums squared residuals of about
+    0.01 (the noise), so such errors move it by about 2e-16 / 0.01 = 2e-14 relative; their
+    states come from a solve whose equilibrated Gramian has condition number 1 here: both
+    checked to 1e-12."""
+    from mfmjax._observers import observe_window
+    from mfmjax._simulate import simulate_status
+
+    u = np.random.default_rng(0).standard_normal((1200, 2))
+    modes = ["foh", "zoh"]
+    ms = [mfmjax.Model.from_coefficients([1.0, 0.8, 1.0], b, delays=[0.23, 0.0],
+                                         intersample=modes)
+          for b in ([[1.0, 0.3], [0.5]], [[1.0], [0.5, 0.2]], [[1.0, 0.3, 0.1], [0.5]],
+                    [[1.0], [0.5]])]
+    y0 = np.asarray(mfmjax.simulate(ms[0], u, dt=DT))
+    sig = Signals(y0 + 0.01 * np.random.default_rng(1).standard_normal(1200), u, dt=DT,
+                  intersample=modes)
+    mfmjax.observe(ms[0], sig)
+    mfmjax.moving_final_states(ms[0], sig, 10.0, [30.0, 40.0])
+    for m in ms[1:]:
+        with compiles() as names:
+            y, x = mfmjax.simulate(m, u, dt=DT, return_state=True)
+            obs = mfmjax.observe(m, sig)
+            xs = mfmjax.moving_final_states(m, sig, 10.0, [30.0, 40.0])
+        assert names == [], f"structure {m.m} compiled {names}"
+        own = m.unlabelled()  # the structure's own program (compiled here, outside the count)
+        y_ref, x_ref, status = jax.jit(simulate_status, static_argnums=3)(own, u, jnp.zeros(2), DT)
+        assert int(status) == 0 and x.shape == (1200, 2)
+        scale = np.max(np.abs(np.asarray(y_ref)))
+        np.testing.assert_allclose(np.asarray(y), np.asarray(y_ref), rtol=0, atol=1e-13 * scale)
+        np.testing.assert_allclose(np.asarray(x), np.asarray(x_ref), rtol=0,
+                                   atol=1e-13 * np.max(np.abs(np.asarray(x_ref))))
+        ref = jax.jit(observe_window, static_argnums=(3, 5))(own, sig.y, sig.u, DT, 0, 1200)
+        np.testing.assert_allclose(float(obs.E), float(ref.E), rtol=1e-12)
+        for got, want in ((obs.x_initial, ref.x_initial), (obs.x_final, ref.x_final)):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=0,
+                                       atol=1e-12 * np.max(np.abs(np.asarray(want))))
+        assert np.asarray(xs).shape == (2, 2) and np.all(np.isfinite(np.asarray(xs)))
+
+
 def test_observe_new_record_and_window_lengths_inside_a_bucket_compile_nothing(record):
     """`observe` pads the window to its record bucket and the record to hold it: records of
     1200 and 1100 samples, and windows of 901 and 921 samples (bucket 1024) with or without an
