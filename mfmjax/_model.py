@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -199,12 +200,26 @@ def simulation_form(model: Model) -> Model:
     from ._boundary import is_traced
 
     n, K = model.n, model.n_inputs
-    xp = jnp if any(is_traced(bk) for bk in model.b) else np
-    b = tuple(xp.concatenate([xp.asarray(bk, dtype=np.float64), xp.zeros(n + 1 - bk.shape[0])])
-              for bk in model.b)
-    return replace_fields(model, b=b, theta=np.zeros(0), mf=None, output_name="y",
-                          structure=Structure(n, [n] * K),
-                          input_names=tuple(f"u{k + 1}" for k in range(K)))
+    b = model.b
+    if any(bk.shape[0] != n + 1 for bk in b):
+        xp = jnp if any(is_traced(bk) for bk in b) else np
+        b = tuple(bk if bk.shape[0] == n + 1 else xp.concatenate(
+            [xp.asarray(bk, dtype=np.float64), xp.zeros(n + 1 - bk.shape[0])]) for bk in b)
+    return replace_fields(model, b=b, theta=_NO_THETA, mf=None, output_name="y",
+                          structure=_full_structure(n, K), input_names=_input_names(K))
+
+
+_NO_THETA = np.zeros(0)
+
+
+@functools.cache
+def _full_structure(n: int, K: int) -> Structure:
+    return Structure(n, [n] * K)
+
+
+@functools.cache
+def _input_names(K: int) -> tuple[str, ...]:
+    return tuple(f"u{k + 1}" for k in range(K))
 
 
 def is_stable(a) -> bool:
