@@ -36,9 +36,9 @@ import numpy as np
 
 from . import _boundary as _b
 from ._jit import jit
-from ._model import Model
+from ._model import Model, simulation_form
 from ._observers import fit_percent, observe, validation_window
-from ._output_error import free_parameters, with_parameters
+from ._output_error import free_parameters, order_parameters, with_parameters
 from ._signals import Signals
 from ._simulate import simulate_status
 
@@ -310,6 +310,16 @@ def _poles(model):
     return np.roots(np.asarray(model.a, dtype=np.float64)[::-1])
 
 
+def _placed(cov, live, size: int):
+    """`cov` (of the free parameters) at the positions `live` of `order_parameters`' vector,
+    zero elsewhere (the extra coefficients are known zeros); None stays None."""
+    if cov is None:
+        return None
+    out = np.zeros((size, size))
+    out[np.ix_(live, live)] = cov
+    return out
+
+
 def _value_and_std(f, theta, cov):
     """f(theta) and, with a covariance, the delta method's sqrt(diag(J cov J^T)) (J = jacfwd)."""
     value = f(theta)
@@ -346,11 +356,12 @@ class StepResponse(eqx.Module):
 
 
 def _step_base(model):
-    """The model as the step programs see it: no labels, zoh inputs, offset 0."""
+    """The model as the step programs see it: `simulation_form` (one program per order n),
+    zoh inputs, offset 0."""
     from ._pytree import replace_fields
 
-    base = eqx.tree_at(lambda m: m.offset, model.unlabelled(), jnp.asarray(0.0))
-    return replace_fields(base, intersample=("zoh",) * model.n_inputs)
+    return replace_fields(simulation_form(model), offset=np.float64(0.0),
+                          intersample=("zoh",) * model.n_inputs)
 
 
 @jit
@@ -387,13 +398,13 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
     t_final = _b.number("step_response", "t_final", t_final, lo=0, lo_open=True,
                         fix="give the duration in the model's time unit")
     dt = t_final / (n_points - 1)
-    _, theta0 = free_parameters(model)
+    _, theta, live = order_parameters(model, free_parameters(model)[1])
     base, ys, stds = _step_base(model), [], []
+    cov = _placed(cov, live, theta.size)
     for k in range(model.n_inputs):
         u = np.zeros((n_points + 1, model.n_inputs))
         u[1:, k] = 1.0
-        y, sd = _step_program(base, jnp.asarray(theta0), jnp.asarray(u),
-                              None if cov is None else jnp.asarray(cov), dt)
+        y, sd = _step_program(base, theta, u, cov, dt)
         ys.append(np.asarray(y))
         if sd is not None:
             stds.append(np.asarray(sd))
@@ -439,7 +450,7 @@ def _freq_program(base, theta, w, cov, k):
     def f(th):
         m = with_parameters(base, th)
         A = jnp.polyval(m.a[::-1].astype(jnp.complex128), s)
-        B = jnp.polyval(m.b[k][::-1].astype(jnp.complex128), s)
+        B = jnp.polyval(jnp.stack(m.b)[k][::-1].astype(jnp.complex128), s)  # k: a value
         H = B / A
         return jnp.stack([20.0 * jnp.log10(jnp.abs(H)), jnp.angle(H)])
     return _value_and_std(f, theta, cov)
@@ -465,12 +476,12 @@ def frequency_response(model, w=None, *, covariance=None, n_points: int = 400):
     if w.size < 1 or np.any(w <= 0):
         raise ValueError("frequency_response(): w must hold frequencies > 0 (rad per time unit)")
     w = np.asarray(w, dtype=np.float64)
-    _, theta0 = free_parameters(model)
+    base, theta, live = order_parameters(model, free_parameters(model)[1])
+    cov = _placed(cov, live, theta.size)
     delays = np.asarray(model.delays, dtype=np.float64)
     Hs, mags, phases, mstd, pstd = [], [], [], [], []
     for k in range(model.n_inputs):
-        val, sd = _freq_program(model.unlabelled(), jnp.asarray(theta0), jnp.asarray(w),
-                                None if cov is None else jnp.asarray(cov), k)
+        val, sd = _freq_program(base, theta, w, cov, np.int32(k))
         mag, ang = np.asarray(val)
         if not (np.all(np.isfinite(mag)) and np.all(np.isfinite(ang))):
             raise ValueError(f"frequency_response(): the response of input "

@@ -9,7 +9,7 @@ import numpy as np
 from ._jit import jit
 from ._linalg import small_matmul
 from ._model import Model
-from ._output_error import free_parameters, with_parameters
+from ._output_error import free_parameters, order_parameters, with_parameters
 from ._simulate import forced_response
 
 
@@ -28,8 +28,12 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
     u = jnp.asarray(u, dtype=jnp.float64).reshape(jnp.shape(u)[0], -1)
     length = u.shape[0] if length is None else length
     names, theta0 = free_parameters(model)
-    v = np.concatenate([theta0, np.asarray(x0, dtype=np.float64)])
-    J = np.asarray(_sensitivities(model.unlabelled(), u, v, float(dt), int(length)))
+    # one program per order n: the sensitivities of every coefficient of the numerators of
+    # order n, then the structure's own columns (and x0's)
+    base, theta, live = order_parameters(model, theta0)
+    v = np.concatenate([theta, np.asarray(x0, dtype=np.float64)])
+    J = np.asarray(_sensitivities(base, u, v, float(dt), int(length)))
+    J = J[:, np.concatenate([live, theta.size + np.arange(model.n)])]
     cov = sigma**2 * np.linalg.pinv(J.T @ J)
     return names, np.sqrt(np.diag(cov))[: theta0.size]
 

@@ -19,7 +19,7 @@ import numpy as np
 from . import _padded as padded
 from ._jit import device, jit
 from ._linalg import small_matmul
-from ._model import Model, is_stable
+from ._model import Model, is_stable, simulation_form
 from ._optim import USABLE
 from ._pytree import replace_fields
 from ._quadrature import edge_padded, record_bucket
@@ -87,6 +87,19 @@ def free_parameters(model: Model):
         names.append("offset")
         vals.append(np.atleast_1d(np.asarray(model.offset)))
     return tuple(names), np.concatenate(vals)
+
+
+def order_parameters(model: Model, theta):
+    """(`simulation_form(model)`, `theta` placed in its free parameters, their positions): a
+    vector ordered as `free_parameters(model)` laid out as the free parameters of the model with
+    every numerator of order n (a_0..a_{n-1}, b_k0..b_kn, offset; the extra coefficients zero).
+    Programs over a model's free parameters then compile once per order n, not per
+    structure; the positions pick the structure's own entries (NumPy, on the host)."""
+    n = model.n
+    live = padded.indices(model, n, n + 1)
+    full = np.zeros(n + model.n_inputs * (n + 1) + int(model.has_offset))
+    full[live] = theta
+    return simulation_form(model), full, live
 
 
 def with_parameters(model: Model, theta):

@@ -174,8 +174,10 @@ def test_simulate_new_record_length_inside_a_bucket_compiles_nothing():
 
 def test_simulate_and_observers_new_structure_of_the_same_order_compile_nothing():
     """`simulate`, `observe` and `moving_final_states` run a model with every numerator
-    zero-padded to its order n (`simulation_form`): one program per order, inputs, rules and
-    offset term, not per structure. Three new structures of order 2 compile nothing, and each
+    zero-padded to its order n (`simulation_form`), and `frequency_response`, `step_response`
+    and `cramer_rao` its free parameters laid out so (`order_parameters`; their correctness is
+    checked in test_analysis.py): one program per order, inputs, rules and offset term, not
+    per structure. Three new structures of order 2 compile nothing in any of them, and each
     response equals the one of the structure's own program (the same realisation, eq. 18:
     the padded coefficients are zeros). That program folds its constant zeros, so the two may
     differ by rounding: a few ulps of each step's sum, compounded over the recursion, bounded
@@ -195,13 +197,24 @@ def test_simulate_and_observers_new_structure_of_the_same_order_compile_nothing(
     y0 = np.asarray(mfmjax.simulate(ms[0], u, dt=DT))
     sig = Signals(y0 + 0.01 * np.random.default_rng(1).standard_normal(1200), u, dt=DT,
                   intersample=modes)
+    from mfmjax._output_error import free_parameters
+
+    def analyses(m):  # the responses with bands and the Cramer-Rao bound
+        p = len(free_parameters(m)[0])
+        cov = 1e-4 * np.eye(p)
+        mfmjax.frequency_response(m, covariance=cov)
+        mfmjax.step_response(m, covariance=cov)
+        mfmjax.cramer_rao(m, u, np.zeros(2), dt=DT, sigma=0.01)
+
     mfmjax.observe(ms[0], sig)
     mfmjax.moving_final_states(ms[0], sig, 10.0, [30.0, 40.0])
+    analyses(ms[0])
     for m in ms[1:]:
         with compiles() as names:
             y, x = mfmjax.simulate(m, u, dt=DT, return_state=True)
             obs = mfmjax.observe(m, sig)
             xs = mfmjax.moving_final_states(m, sig, 10.0, [30.0, 40.0])
+            analyses(m)
         assert names == [], f"structure {m.m} compiled {names}"
         own = m.unlabelled()  # the structure's own program (compiled here, outside the count)
         y_ref, x_ref, status = jax.jit(simulate_status, static_argnums=3)(own, u, jnp.zeros(2), DT)
