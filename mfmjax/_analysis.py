@@ -36,7 +36,7 @@ import numpy as np
 
 from . import _boundary as _b
 from ._jit import jit
-from ._model import Model, simulation_form
+from ._model import Model
 from ._observers import fit_percent, observe, validation_window
 from ._output_error import free_parameters, order_parameters, with_parameters
 from ._signals import Signals
@@ -355,13 +355,12 @@ class StepResponse(eqx.Module):
         plot_step(self, path)
 
 
-def _step_base(model):
-    """The model as the step programs see it: `simulation_form` (one program per order n),
+def _step_base(form):
+    """The model's `simulation_form` (one program per order n) as the step programs see it:
     zoh inputs, offset 0."""
     from ._pytree import replace_fields
 
-    return replace_fields(simulation_form(model), offset=np.float64(0.0),
-                          intersample=("zoh",) * model.n_inputs)
+    return replace_fields(form, offset=np.float64(0.0), intersample=("zoh",) * form.n_inputs)
 
 
 @jit
@@ -398,8 +397,8 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
     t_final = _b.number("step_response", "t_final", t_final, lo=0, lo_open=True,
                         fix="give the duration in the model's time unit")
     dt = t_final / (n_points - 1)
-    _, theta, live = order_parameters(model, free_parameters(model)[1])
-    base, ys, stds = _step_base(model), [], []
+    form, theta, live = order_parameters(model, free_parameters(model)[1])
+    base, ys, stds = _step_base(form), [], []
     cov = _placed(cov, live, theta.size)
     for k in range(model.n_inputs):
         u = np.zeros((n_points + 1, model.n_inputs))

@@ -133,7 +133,7 @@ class Model(eqx.Module):
         """Labels removed and the MF settings as values (`as_values`): what jitted programs see,
         so that names and settings never compile a new program."""
         return replace_fields(self, output_name="y", mf=None if self.mf is None else as_values(self.mf),
-                              input_names=tuple(f"u{k + 1}" for k in range(self.n_inputs)))
+                              input_names=_input_names(self.n_inputs))
 
     def labelled(self, output_name: str, input_names: Sequence[str]) -> Model:
         """The same model with these labels (the inverse of `unlabelled` after a jitted call)."""
