@@ -261,7 +261,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
     # winner of each of the best `STRUCTURES` structures, and SRIVC from it; then output
     # error on the best
     cand = [(r, i) for r in range(R) for i in _best_per_structure(sels[r].refit, STRUCTURES)]
-    firsts = [[x.best(i) for x in sels[r].fitted] for r, i in cand]
+    firsts = [[x.best(i, device=False) for x in sels[r].fitted] for r, i in cand]
     tried = [[] for _ in range(R)]  # (mean hold-out E, fit, rank, stage, per-fold models, BIC)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -286,7 +286,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
                 for t in tried]
         best = [b if b[3] == "mfm" else near_tie_by_bic(t, key) for b, t in zip(best, tried)]
         if polish is not False:
-            bases = [b[4] if b[3] == "srivc" else [stabilised(x.best(b[2]))[0]
+            bases = [b[4] if b[3] == "srivc" else [stabilised(x.best(b[2], device=False))[0]
                                                    for x in sels[r].fitted]
                      for r, b in enumerate(best)]
             oe = [None if v is None else [f.model for f in v]

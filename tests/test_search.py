@@ -4,6 +4,7 @@ import subprocess
 import sys
 import warnings
 
+import jax
 import numpy as np
 import pytest
 
@@ -77,6 +78,14 @@ def test_best_by_E_has_true_orders(clean):
     model = res.best()
     assert isinstance(model, mfmjax.Model) and model.n == 3
     assert np.allclose(np.asarray(model.a), [1.0, 3.5, 3.5, 1.0], rtol=1e-4)
+    # device=False: the same model with NumPy arrays (no transfer), leaf by leaf bitwise
+    host = res.best(0, device=False)
+    assert isinstance(host.a, np.ndarray) and isinstance(model.a, jax.Array)
+    assert jax.tree.structure(host) == jax.tree.structure(model)
+    for x, y in zip(jax.tree.leaves(host), jax.tree.leaves(model)):
+        if isinstance(y, jax.Array):  # (the settings N, M, h are Python numbers in both)
+            assert isinstance(x, np.ndarray) and x.dtype == y.dtype
+        np.testing.assert_array_equal(x, np.asarray(y))
     # the other scores rank sensibly too
     for score in ("J", "fit", "aic", "bic"):
         r = mfmjax.search(clean, n=(1, 2, 3), N=(4,), M=(4,), h=(2.0,), m=[(0, 1), (0,)],

@@ -64,8 +64,10 @@ class SearchResult(eqx.Module):
             "offset": float(c["offset"][j]) if self.has_offset else None,
         }
 
-    def best(self, i: int = 0) -> Model:
-        """The candidate of rank `i` as a `Model` (parameters exactly as searched)."""
+    def best(self, i: int = 0, *, device: bool = True) -> Model:
+        """The candidate of rank `i` as a `Model` (parameters exactly as searched);
+        `device=False`: its arrays as NumPy arrays, without the transfer (for code that reads
+        them on the host, as `estimate` does with hundreds of candidates)."""
         from .._boundary import check_rank
 
         i = check_rank("best", i, len(self))
@@ -75,7 +77,8 @@ class SearchResult(eqx.Module):
         f64 = np.float64
         # every array in one transfer (a `device` call per field cost 0.6 s of `estimate` on
         # 100 records, which builds about 800 candidates' models)
-        a, b, offset, delays, theta, J, J_rel, cond, status = jax.device_put((
+        put = jax.device_put if device else (lambda x: x)
+        a, b, offset, delays, theta, J, J_rel, cond, status = put((
             np.asarray(r["a"], f64), tuple(np.asarray(bk, f64) for bk in r["b"]),
             np.asarray(r["offset"] or 0.0, f64), np.asarray(r["delays"], f64),
             np.asarray(_compact_theta(c["theta"][j], r["n"], r["m"], self), f64),
