@@ -23,12 +23,14 @@ def stack(trees):
     return jax.device_put(jax.tree.map(lambda *xs: np.stack(xs), *jax.device_get(trees)))
 
 
-def unstack(tree) -> list:
+def unstack(tree, device: bool = True) -> list:
     """The inverse of `stack` (sliced on the host and put back in one transfer: slicing each
-    leaf on the device cost as much as the mapped computation itself)."""
+    leaf on the device cost as much as the mapped computation itself); `device=False`: the
+    NumPy slices, for a caller that reads them on the host."""
     host = jax.device_get(tree)
     count = jax.tree.leaves(host)[0].shape[0]
-    return jax.device_put([jax.tree.map(lambda x, i=i: x[i], host) for i in range(count)])
+    out = [jax.tree.map(lambda x, i=i: x[i], host) for i in range(count)]
+    return jax.device_put(out) if device else out
 
 
 def as_records(fn: str, signals) -> tuple[list, bool]:
@@ -84,14 +86,15 @@ def _mapped(fn, kw, sig, ys, us, models):
     return jax.lax.map(one, (ys, us, models))
 
 
-def map_pairs(fn, records, models, **kw) -> list:
+def map_pairs(fn, records, models, *, device: bool = True, **kw) -> list:
     """`fn(records[i], models[i], **kw)` for every pair: each chunk of `BATCH` pairs of one
     pytree structure and shape in one compiled call, a single pair by `fn` itself (the program
     a direct call uses). `records`: `Signals` of one layout; `kw` are static (hashable). The
     models' labels and modulating functions are dropped (`fn` does not use them); other
     pytrees (e.g. the search's padded candidates) pass as they are. An entry is None where
     `fn` raised ValueError (e.g. an overflowing simulation in eager mode).
-    Chunks run on threads (`in_parallel`)."""
+    Chunks run on threads (`in_parallel`). `device=False`: the results as NumPy arrays (no
+    transfer back to the device, for callers that read them on the host)."""
     models = [replace_fields(m.unlabelled(), mf=None) if hasattr(m, "unlabelled") else m
               for m in models]
     out = [None] * len(models)
@@ -99,11 +102,12 @@ def map_pairs(fn, records, models, **kw) -> list:
     def run(idx):
         try:
             if len(idx) == 1:
-                return [(idx[0], fn(records[idx[0]], models[idx[0]], **kw))]
+                one = fn(records[idx[0]], models[idx[0]], **kw)
+                return [(idx[0], one if device else jax.device_get(one))]
             sig = records[idx[0]].unlabelled()
             res = _mapped(fn, kw, sig, *stack([(records[i].y, records[i].u) for i in idx]),
                           stack([models[i] for i in idx]))
-            return list(zip(idx, unstack(res)))
+            return list(zip(idx, unstack(res, device)))
         except ValueError:
             return []
 

@@ -223,7 +223,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
         for f, (_, hold, ob, y_hold) in enumerate(folds):
             start, length, ob = validation_window(records[0], hold, ob, n_max, "estimate")
             obs = map_pairs(_observed, [records[r] for r, _ in pairs],
-                            [padded_model(ms[f], n_max) for _, ms in pairs],
+                            [padded_model(ms[f], n_max) for _, ms in pairs], device=False,
                             start=np.int32(start), length=length, ob_length=ob)
             for k, ((r, _), o) in enumerate(zip(pairs, obs)):
                 if o is None or int(o.status) & (Status.OVERFLOW | Status.UNOBSERVABLE):

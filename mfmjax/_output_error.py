@@ -305,7 +305,8 @@ def output_error_many(records, models, *, n_max: int | None = None, max_steps: i
         if len(idx) == 1:  # a single pair: the program `output_error` uses
             solved = [_lm(prepared[idx[0]][0], z0, *limits)]
         else:
-            solved = zip(*map(unstack, _lm_many(stack([prepared[i][0] for i in idx]), *limits)))
+            solved = zip(*(unstack(x, device=False) for x in _lm_many(
+                stack([prepared[i][0] for i in idx]), *limits)))
         return [(i, _finish(prepared[i][0], prepared[i][1], one)) for i, one in zip(idx, solved)]
 
     for pairs in in_parallel(run, groups([prepared[i][0] for i in live])):

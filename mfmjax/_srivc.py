@@ -452,7 +452,8 @@ def srivc_many(records, models, *, n_max: int | None = None, max_iter: int = 30,
         starts.append(padded.padded_model(model, n, w - 1))
         live.append(i)
         shapes.append((n, w))
-    outs = map_pairs(padded_fit, [records[i] for i in live], starts, max_iter=max_iter, tol=tol)
+    outs = map_pairs(padded_fit, [records[i] for i in live], starts, device=False,
+                     max_iter=max_iter, tol=tol)
     fits = [None] * len(models)
     for i, out, shape in zip(live, outs, shapes):
         fits[i] = None if out is None else _fit(records[i], models[i], out, shape)

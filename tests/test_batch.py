@@ -53,3 +53,21 @@ def test_map_pairs_on_threads_equals_one_thread_and_the_direct_call(monkeypatch)
     np.testing.assert_array_equal(out[1], out[2])  # bitwise: the same programs, same data
     direct = [float(np.sum(r.y * r.u[:, 0]) * m["g"] + m["c"]) for r, m in zip(records, models)]
     np.testing.assert_allclose(out[2], direct, rtol=1e-12)  # summation order: rounding only
+
+
+def test_map_pairs_on_the_host_equals_on_the_device():
+    """`device=False`: every result a NumPy value (chunks and single pairs alike), bitwise
+    those of the default call, which puts them back on the device."""
+    import jax
+
+    rng = np.random.default_rng(4)
+    count = _batch.BATCH + 1  # one mapped chunk and one single pair
+    records = [mfmjax.Signals(rng.standard_normal(300), rng.standard_normal(300), dt=0.1)
+               for _ in range(count)]
+    models = [{"g": np.float64(rng.standard_normal()), "c": np.float64(i)}
+              for i in range(count)]
+    on_device = _batch.map_pairs(_weighted, records, models)
+    on_host = _batch.map_pairs(_weighted, records, models, device=False)
+    assert all(isinstance(x, jax.Array) for x in on_device)
+    assert all(isinstance(x, np.ndarray | np.generic) for x in on_host)  # 0-d: np.float64
+    np.testing.assert_array_equal(np.asarray(on_host), np.asarray(on_device))
