@@ -212,9 +212,10 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
                       [np.asarray(rec.window(*hold).y) for rec in records]))
 
     n_max = max(int(np.max(sel.refit.columns["n"])) for sel in sels)  # one observer program
-    # output error: a batch pads every structure to n_max (no program per structure chosen);
-    # one record keeps its own shape (the padded unknowns would cost forward-mode passes)
-    oe_pad = n_max if R > 1 else None
+    # output error pads every structure to n_max too, one record as well as a batch: no
+    # program per structure chosen (one record in its own shape was faster warm, 9.5 against
+    # 11.0 ms per record on Table 3 model 1, but a record choosing a new structure compiled
+    # for about 1.3 s)
 
     def hold_scores(pairs):
         """(mean hold-out E over the folds, mean fit %) of each (record, models per fold)."""
@@ -290,7 +291,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
                                                    for x in sels[r].fitted]
                      for r, b in enumerate(best)]
             oe = [None if v is None else [f.model for f in v]
-                  for v in per_fold(output_error, list(enumerate(bases)), n_max=oe_pad)]
+                  for v in per_fold(output_error, list(enumerate(bases)), n_max=n_max)]
             live = [r for r in range(R) if oe[r] is not None]
             for r, (E_oe, fit_oe) in zip(live, hold_scores([(r, oe[r]) for r in live])):
                 stage = "srivc + output error" if best[r][3] == "srivc" else "output error"
@@ -338,7 +339,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
         oes = dict(zip(oe_rec, _staged_many(
             output_error, [est_sigs[r] for r in oe_rec],
             [fits[r].model if fits.get(r) is not None else seeds[r][0] for r in oe_rec],
-            n_max=oe_pad)))
+            n_max=n_max)))
         for r in [r for r in fell if methods[r] == "srivc + output error"]:
             if oes[r] is None or not oes[r].converged:  # no better: SRIVC's best iterate
                 methods[r] = "srivc"

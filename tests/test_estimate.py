@@ -173,6 +173,22 @@ def test_estimate_batch_compiles_nothing_for_other_structures(batch_20db):
     assert names == [], names
 
 
+def test_estimate_one_record_compiles_nothing_for_another_structure(batch_20db):
+    """One record at a time too: after a record that chose n = 2, a record of the first-order
+    system chooses n = 1 and compiles nothing (output error's trial included: it pads every
+    structure to the grid's largest order for one record as for a batch)."""
+    from jaxlog import compiles
+
+    records, _, _ = batch_20db
+    assert mfmjax.estimate(records[0], **SMALL).model.n == 2
+    first_order = Model.from_coefficients([1.0, 1.0], [[1.0]], intersample=["zoh"])
+    record = _realisations(20.0, [90], first_order)[0]
+    with compiles() as names:
+        est = mfmjax.estimate(record, **SMALL)
+    assert est.model.n == 1
+    assert names == [], names
+
+
 def test_estimate_batch_refuses_mixed_layouts(noisy):
     sig, _ = noisy
     short = mfmjax.Signals(sig.y[:-5], sig.u[:-5], dt=DT, intersample=["zoh"])
