@@ -499,15 +499,18 @@ def _from_search(records, results, *, polish, max_iter, tol) -> list:
                           stacklevel=3)
         starts.append(start)
     seeds = [stabilised(s) for s in starts]
-    fits = _staged_many(srivc, records, [s for s, _ in seeds], max_iter=max_iter, tol=tol)
+    # every winner zero-padded to the grid's largest order: one SRIVC and one output-error
+    # program per grid, whatever order each record's winner has (one record as well as a batch)
+    n_max = max(res.n_max for res in results)
+    fits = _staged_many(srivc, records, [s for s, _ in seeds], n_max=n_max, max_iter=max_iter,
+                        tol=tol)
     if any(f is None for f in fits):
         raise ValueError("estimate(): SRIVC could not simulate the search's winner on this "
                          "record; try selection='holdout' or a smaller grid")
     with warnings.catch_warnings():  # `estimate` warns itself for a stage that did not converge
         warnings.simplefilter("ignore")
-        oes = _staged_many(output_error, records, [f.model for f in fits], n_max=max(
-            f.model.n for f in fits) if len(fits) > 1 else None) if polish \
-            else [None] * len(fits)
+        oes = _staged_many(output_error, records, [f.model for f in fits], n_max=n_max) \
+            if polish else [None] * len(fits)
     out = []
     for rec, res, start, (_, unstable), fit, oe in zip(records, results, starts, seeds, fits,
                                                         oes):

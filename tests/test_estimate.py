@@ -189,6 +189,23 @@ def test_estimate_one_record_compiles_nothing_for_another_structure(batch_20db):
     assert names == [], names
 
 
+def test_estimate_bic_one_record_compiles_nothing_for_another_order(batch_20db):
+    """`selection="bic"` (SRIVC from the search's BIC winner, output error with `polish`)
+    pads the winner to the grid's largest order as well: a record whose winner has n = 1
+    after one whose winner has n = 2 compiles nothing."""
+    from jaxlog import compiles
+
+    records, _, _ = batch_20db
+    kw = dict(SMALL, selection="bic", polish=True)
+    assert mfmjax.estimate(records[0], **kw).model.n == 2
+    first_order = Model.from_coefficients([1.0, 1.0], [[1.0]], intersample=["zoh"])
+    record = _realisations(20.0, [91], first_order)[0]
+    with compiles() as names:
+        est = mfmjax.estimate(record, **kw)
+    assert est.model.n == 1 and est.method == "srivc + output error"
+    assert names == [], names
+
+
 def test_estimate_batch_refuses_mixed_layouts(noisy):
     sig, _ = noisy
     short = mfmjax.Signals(sig.y[:-5], sig.u[:-5], dt=DT, intersample=["zoh"])
