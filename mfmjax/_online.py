@@ -423,7 +423,7 @@ def _padded_window(config: OnlineConfig, y, u):
 
 @jit
 def _score(sig, static, where, c):
-    return validate_candidate(sig, static, c, where)
+    return validate_candidate(sig, static.v_length, c, where)
 
 
 @jit

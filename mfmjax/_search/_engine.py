@@ -19,7 +19,7 @@ from .._jit import RUN_ONCE_OPTIONS, jit
 from .._quadrature import edge_padded
 from .._signals import Signals
 from .._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
-from ._grid import ChunkStatic, Plan
+from ._grid import VALIDATION_BATCH, ChunkStatic, Plan
 from ._moments import moment_gram
 from ._result import collect
 from ._validation import validate_candidate
@@ -133,18 +133,97 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
     if not static.simulate:  # equation error only (score J)
         nan = jnp.full(shape, jnp.nan)
         return dict(out, E=nan, fit=nan, aic=nan, bic=nan, status=out["status"].astype(jnp.int32))
-    flat = {
-        "a": out["a"].reshape(-1, n_max + 1),
-        "b": out["b"].reshape(-1, K, n_max + 1),
-        "offset": out["offset"].reshape(-1),
-        "n": jnp.broadcast_to(cand["n"], shape).reshape(-1),
-        "k": jnp.broadcast_to(cand["k"], shape).reshape(-1),
-        "delays": jnp.broadcast_to(groups["delays"][:, None, :], shape + (K,)).reshape(-1, K),
-    }
-    val = in_blocks(lambda c: validate_candidate(sig, static, c, where), flat, static.batch)
+    if validated_apart(static):  # the validation simulations: `validate_block`, after it
+        return dict(out, status=out["status"].astype(jnp.int32))
+    flat = validation_candidates(jnp, out, cand, groups["delays"])
+    val = in_blocks(lambda c: validate_candidate(sig, static.v_length, c, where), flat,
+                    static.batch)
     val = {key: v.reshape(shape) for key, v in val.items()}
     status = (out["status"] | val.pop("status")).astype(jnp.int32)
     return dict(out, status=status, **val)
+
+
+def validated_apart(static: ChunkStatic) -> bool:
+    """One device: the chunk's candidates are validated by a program of their own
+    (`validate_block`), whose shapes depend on the record, the largest order and the window
+    only, so grids that differ in anything else share it (a new grid on a record compiles the
+    solves alone). Several devices: inside the chunk, sharded with it."""
+    return static.simulate and static.devices == 1
+
+
+def validation_candidates(xp, out, cand, delays):
+    """The padded models of a chunk's (G, C) solves as one flat axis (`validate_candidate`'s
+    `c`): NumPy on the host, JAX inside the chunk."""
+    shape = out["status"].shape
+    n_max, K = out["a"].shape[-1] - 1, delays.shape[-1]
+    return {
+        "a": out["a"].reshape(-1, n_max + 1),
+        "b": out["b"].reshape(-1, K, n_max + 1),
+        "offset": out["offset"].reshape(-1),
+        "n": xp.broadcast_to(cand["n"], shape).reshape(-1),
+        "k": xp.broadcast_to(cand["k"], shape).reshape(-1),
+        "delays": xp.broadcast_to(delays[:, None, :], shape + (K,)).reshape(-1, K),
+    }
+
+
+# candidates per call of the validation program (`validate_apart`): 32 blocks; a chunk with
+# fewer skips the rest
+VALIDATION_SLAB = 32 * VALIDATION_BATCH
+
+
+@jit
+def validate_blocks(sig: Signals, c, count, where, v_length: int):
+    """`validate_candidate` of the first `count` (a value) of the padded candidates `c`
+    (leaves (blocks x B, ...), B = `VALIDATION_BATCH`), B at a time (vmapped) in a loop of
+    ceil(count / B) trips; the blocks beyond return zeros. (A `lax.map` with the unused blocks
+    skipped by `lax.cond` ran 2-4 % slower.)"""
+    B = VALIDATION_BATCH
+    blocks = jax.tree.map(lambda x: x.reshape((-1, B) + x.shape[1:]), c)
+
+    def block(cb):
+        return jax.vmap(lambda ci: validate_candidate(sig, v_length, ci, where))(cb)
+
+    n_blocks = c["n"].shape[0] // B
+    shapes = jax.eval_shape(block, jax.tree.map(lambda x: x[0], blocks))
+    init = jax.tree.map(lambda s: jnp.zeros((n_blocks,) + s.shape, s.dtype), shapes)
+
+    def one(i, out):
+        res = block(jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, i, keepdims=False),
+                                 blocks))
+        return jax.tree.map(lambda o, r: jax.lax.dynamic_update_index_in_dim(o, r, i, 0), out,
+                            res)
+
+    out = jax.lax.fori_loop(0, (count + B - 1) // B, one, init)
+    return jax.tree.map(lambda v: v.reshape((-1,) + v.shape[2:]), out)
+
+
+@jit
+def validate_blocks_records(sig: Signals, ys, us, c, count, where, v_length: int):
+    """`validate_blocks` for records of equal layout (ys (R, T), us (R, T, K), the candidates'
+    leaves (R, blocks x B, ...)), one after another (`lax.map`)."""
+    return jax.lax.map(lambda x: validate_blocks(eqx.tree_at(lambda s: (s.y, s.u), sig, x[:2]),
+                                                 x[2], count, where, v_length), (ys, us, c))
+
+
+def validate_apart(sig, ys, us, flat, where, static: ChunkStatic, records: bool) -> dict:
+    """E, fit, AIC, BIC and status of the flat candidates `flat` (host arrays; leading axis
+    the records' with `records`), `VALIDATION_SLAB` at a time: every grid on a record layout
+    runs one program (the slab's unused blocks are skipped, not simulated); every slab is
+    dispatched before any is read."""
+    axis = 1 if records else 0
+    total = flat["n"].shape[axis]
+    where = {k: where[k] for k in ("v_start", "v_valid", "ob")}
+    outs = []
+    for s0 in range(0, total, VALIDATION_SLAB):
+        idx = np.minimum(np.arange(s0, s0 + VALIDATION_SLAB), total - 1)  # padding: repeats
+        c = {k: np.take(v, idx, axis=axis) for k, v in flat.items()}
+        count = np.int32(min(VALIDATION_SLAB, total - s0))
+        outs.append(validate_blocks_records(sig, ys, us, c, count, where, static.v_length)
+                    if records else validate_blocks(sig, c, count, where, static.v_length))
+    outs = jax.device_get(outs)
+    return {k: np.concatenate([o[k] for o in outs], axis=axis)[(slice(None),) * axis
+                                                                + (slice(total),)]
+            for k in outs[0]}
 
 
 chunk_jit = jit(evaluate_chunk)
@@ -198,6 +277,10 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
         fn = chunk_jit_once if quick else chunk_jit
     else:
         fn = chunk_records_jit
+    apart = validated_apart(static)
+    if apart:  # the validation blocks' inputs, on the device once
+        cand = jax.device_get(plan.cand)
+        sig_d, ys_d, us_d = jax.device_put((sig, ys, us))
     program = (fn, static, chunk, tuple(np.shape(x) for x in jax.tree.leaves(
         (sig, ys, us, plan.eta, plan.cand, plan.nm, plan.where))))
     cols, times = [{} for _ in batch], {}
@@ -211,6 +294,7 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
             "h": np.asarray([hd[i][0] for i in idx]),
             "delays": np.asarray([hd[i][1] for i in idx], dtype=np.float64).reshape(chunk, K),
         }
+        delays = g["delays"]
         g = {k: place(v, plan.sharding) for k, v in g.items()}
         t0 = time.perf_counter()
         args = (static, plan.eta, g, plan.cand, plan.nm, plan.where)
@@ -219,6 +303,20 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
         else:
             out = jax.device_get(fn(sig, ys, us, *args))
             res = [jax.tree.map(lambda x, r=r: x[r], out) for r in range(len(records))]
+        if apart:  # the settings repeated to fill the last chunk are not validated
+            res = [{k: v[:real] for k, v in rec.items()} for rec in jax.device_get(res)]
+            flats = [validation_candidates(np, rec, cand, delays[:real]) for rec in res]
+            if len(batch) == 1:
+                val = [validate_apart(sig_d, None, None, flats[0], plan.where, static, False)]
+            else:
+                val = validate_apart(sig_d, ys_d, us_d, {k: np.stack([f[k] for f in flats])
+                                                         for k in flats[0]},
+                                     plan.where, static, True)
+                val = [{k: v[r] for k, v in val.items()} for r in range(len(batch))]
+            for rec, v in zip(res, val):
+                shape = rec["status"].shape
+                rec["status"] = rec["status"] | v.pop("status").reshape(shape).astype(np.int32)
+                rec.update({k: x.reshape(shape) for k, x in v.items()})
         if jax.process_count() > 1:  # multi-host: every process gets every candidate
             from jax.experimental import multihost_utils
 

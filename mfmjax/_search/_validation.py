@@ -9,19 +9,18 @@ from .._linalg import hurwitz
 from .._padded import observe_padded
 from .._signals import Signals
 from .._status import Status
-from ._grid import ChunkStatic
 
 
-def validate_candidate(sig: Signals, static: ChunkStatic, c, where):
+def validate_candidate(sig: Signals, v_length: int, c, where):
     """E (eq. 17), fit and information criteria of one candidate on the validation window
-    (`where`: its start "v_start", its length "v_valid" <= `static.v_length` and the observer's
-    "ob", all values), the simulation started from the initial-state observer (eq. 14) of a
-    zero-padded realisation."""
+    (`where`: its start "v_start", its length "v_valid" <= `v_length` (the window's buffer) and
+    the observer's "ob", all values), the simulation started from the initial-state observer
+    (eq. 14) of a zero-padded realisation."""
     start, valid = where["v_start"], where["v_valid"]
-    yv = jax.lax.dynamic_slice_in_dim(sig.y, start, static.v_length)
-    obs = observe_padded(sig, c, start, static.v_length, where["ob"], valid)
+    yv = jax.lax.dynamic_slice_in_dim(sig.y, start, v_length)
+    obs = observe_padded(sig, c, start, v_length, where["ob"], valid)
     status = obs.status | jnp.where(hurwitz(c["a"]), 0, Status.UNSTABLE)
-    inside = jnp.arange(static.v_length) < valid
+    inside = jnp.arange(v_length) < valid
     Nv = valid.astype(jnp.float64)
     loglik = Nv * jnp.log(jnp.maximum(obs.E / (Nv * sig.dt), 1e-300))
     return dict(E=obs.E, fit=_fit(yv, obs.y_sim, inside, Nv), aic=loglik + 2 * c["k"],
