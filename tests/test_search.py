@@ -93,6 +93,41 @@ def test_best_by_E_has_true_orders(clean):
         assert r.row(0)["n"] == 3
 
 
+def test_search_validates_apart_bitwise_and_a_new_grid_compiles_its_solves_only(noisy):
+    """`search` simulates its candidates (E, eq. 17) in a program of its own
+    (`plan_search(apart=True)`, `validate_blocks`): every column equals, bitwise and in dtype,
+    the chunk that validates inside itself (as `estimate` and the on-line identifier run it),
+    with a last chunk padded by a repeated setting (not simulated apart) and chunks of 112
+    and 56 candidates (blocks of 32: partly filled); and a new grid of the same largest order
+    on the record compiles its chunk only."""
+    from jaxlog import compiles
+
+    from mfmjax import _executables
+    from mfmjax._search import plan_search, run_plan
+
+    grid = dict(n=(1, 2, 3), N=(3, 4), M=(3, 4), h=(1.0, 1.3, 1.6), chunk_size=2)
+    # an earlier test may hold this record's validation program (as between test modules)
+    jax.clear_caches()
+    _executables.clear()
+    with compiles() as first:
+        res = mfmjax.search(noisy, **grid)
+    assert {"jit(evaluate_chunk)", "jit(validate_blocks)"} <= set(first)
+    with compiles() as new_grid:
+        other = mfmjax.search(noisy, n=(2, 3), N=(4, 5), M=(3, 4), h=(1.2,), chunk_size=2)
+    assert "jit(evaluate_chunk)" in new_grid and "jit(validate_blocks)" not in new_grid
+    assert len(other) == 4 * (4 + 9) and np.isfinite(other.columns["E"]).any()
+    kw = dict(grid, m=None, delays=None, score="E", validate=None, observer_window=None,
+              eta=None, simulate=True, split=True)
+    inside = run_plan(plan_search(noisy, **kw), noisy, once=True)
+    assert len(res) == len(inside) == 3 * 4 * 14
+    for key, col in res.columns.items():
+        col, ref = np.asarray(col), np.asarray(inside.columns[key])
+        assert col.dtype == ref.dtype, key
+        np.testing.assert_array_equal(col, ref, err_msg=key)
+    with pytest.raises(ValueError, match="one record at a time"):
+        run_plan(plan_search(noisy, **kw, apart=True), noisy, records=[noisy, noisy])
+
+
 def test_one_compilation_for_many_chunks(noisy, monkeypatch):
     """Chunks of a compiled program run on a thread per core (the first run of a program
     runs its first chunk alone): every run writes the same columns, bitwise, as one thread."""

@@ -17,7 +17,10 @@ Work sharing:
   comes from Householder tridiagonalisation + Sturm bisection (`_linalg`);
 - every candidate is then simulated from its initial-state-observer estimate on the validation
   window (eq. 14, 17) through a zero-padded realisation of order $n_{max}$ with a state mask,
-  in vmapped batches of 64 (`lax.map`) so memory stays flat.
+  in vmapped batches of 32 (`VALIDATION_BATCH`) so memory stays flat. For `search` (one
+  device) that is a program of its own (`validate_blocks`), whose shapes depend on the
+  record, $n_{max}$ and the window only: a new grid on a searched record compiles its solves
+  alone.
 
 (h, delays) settings are processed in chunks of fixed size (one compilation for the whole
 grid, memory flat in the candidate count; results go straight into preallocated columns).

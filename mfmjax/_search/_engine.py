@@ -133,9 +133,13 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
     if not static.simulate:  # equation error only (score J)
         nan = jnp.full(shape, jnp.nan)
         return dict(out, E=nan, fit=nan, aic=nan, bic=nan, status=out["status"].astype(jnp.int32))
-    if validated_apart(static):  # the validation simulations: `validate_block`, after it
-        return dict(out, status=out["status"].astype(jnp.int32))
-    flat = validation_candidates(jnp, out, cand, groups["delays"])
+    flat = validation_candidates(out, cand, groups["delays"])
+    if validated_apart(static):  # the validation simulations: `validate_blocks`, after it,
+        # on the candidates padded to whole slabs (the last repeated)
+        size = -(-flat["n"].shape[0] // VALIDATION_SLAB) * VALIDATION_SLAB
+        idx = jnp.minimum(jnp.arange(size), flat["n"].shape[0] - 1)
+        return dict(out, status=out["status"].astype(jnp.int32),
+                    slab=jax.tree.map(lambda x: x[idx], flat))
     val = in_blocks(lambda c: validate_candidate(sig, static.v_length, c, where), flat,
                     static.batch)
     val = {key: v.reshape(shape) for key, v in val.items()}
@@ -144,30 +148,31 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
 
 
 def validated_apart(static: ChunkStatic) -> bool:
-    """One device: the chunk's candidates are validated by a program of their own
-    (`validate_block`), whose shapes depend on the record, the largest order and the window
-    only, so grids that differ in anything else share it (a new grid on a record compiles the
-    solves alone). Several devices: inside the chunk, sharded with it."""
-    return static.simulate and static.devices == 1
+    """The chunk's candidates are validated by a program of their own (`validate_blocks`),
+    whose shapes depend on the record, the largest order and the window only, so grids that
+    differ in anything else share it (`plan_search(apart=True)`, one device; several devices:
+    inside the chunk, sharded with it)."""
+    return static.simulate and static.apart and static.devices == 1
 
 
-def validation_candidates(xp, out, cand, delays):
+def validation_candidates(out, cand, delays):
     """The padded models of a chunk's (G, C) solves as one flat axis (`validate_candidate`'s
-    `c`): NumPy on the host, JAX inside the chunk."""
+    `c`)."""
     shape = out["status"].shape
     n_max, K = out["a"].shape[-1] - 1, delays.shape[-1]
     return {
         "a": out["a"].reshape(-1, n_max + 1),
         "b": out["b"].reshape(-1, K, n_max + 1),
         "offset": out["offset"].reshape(-1),
-        "n": xp.broadcast_to(cand["n"], shape).reshape(-1),
-        "k": xp.broadcast_to(cand["k"], shape).reshape(-1),
-        "delays": xp.broadcast_to(delays[:, None, :], shape + (K,)).reshape(-1, K),
+        "n": jnp.broadcast_to(cand["n"], shape).reshape(-1),
+        "k": jnp.broadcast_to(cand["k"], shape).reshape(-1),
+        "delays": jnp.broadcast_to(delays[:, None, :], shape + (K,)).reshape(-1, K),
     }
 
 
-# candidates per call of the validation program (`validate_apart`): 32 blocks; a chunk with
-# fewer skips the rest
+# a chunk's candidates go to the validation program padded to a multiple of this (32 blocks):
+# the programs of all chunks up to this size are one; the blocks beyond the chunk's own
+# candidates are skipped
 VALIDATION_SLAB = 32 * VALIDATION_BATCH
 
 
@@ -195,35 +200,6 @@ def validate_blocks(sig: Signals, c, count, where, v_length: int):
 
     out = jax.lax.fori_loop(0, (count + B - 1) // B, one, init)
     return jax.tree.map(lambda v: v.reshape((-1,) + v.shape[2:]), out)
-
-
-@jit
-def validate_blocks_records(sig: Signals, ys, us, c, count, where, v_length: int):
-    """`validate_blocks` for records of equal layout (ys (R, T), us (R, T, K), the candidates'
-    leaves (R, blocks x B, ...)), one after another (`lax.map`)."""
-    return jax.lax.map(lambda x: validate_blocks(eqx.tree_at(lambda s: (s.y, s.u), sig, x[:2]),
-                                                 x[2], count, where, v_length), (ys, us, c))
-
-
-def validate_apart(sig, ys, us, flat, where, static: ChunkStatic, records: bool) -> dict:
-    """E, fit, AIC, BIC and status of the flat candidates `flat` (host arrays; leading axis
-    the records' with `records`), `VALIDATION_SLAB` at a time: every grid on a record layout
-    runs one program (the slab's unused blocks are skipped, not simulated); every slab is
-    dispatched before any is read."""
-    axis = 1 if records else 0
-    total = flat["n"].shape[axis]
-    where = {k: where[k] for k in ("v_start", "v_valid", "ob")}
-    outs = []
-    for s0 in range(0, total, VALIDATION_SLAB):
-        idx = np.minimum(np.arange(s0, s0 + VALIDATION_SLAB), total - 1)  # padding: repeats
-        c = {k: np.take(v, idx, axis=axis) for k, v in flat.items()}
-        count = np.int32(min(VALIDATION_SLAB, total - s0))
-        outs.append(validate_blocks_records(sig, ys, us, c, count, where, static.v_length)
-                    if records else validate_blocks(sig, c, count, where, static.v_length))
-    outs = jax.device_get(outs)
-    return {k: np.concatenate([o[k] for o in outs], axis=axis)[(slice(None),) * axis
-                                                                + (slice(total),)]
-            for k in outs[0]}
 
 
 chunk_jit = jit(evaluate_chunk)
@@ -278,9 +254,11 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
     else:
         fn = chunk_records_jit
     apart = validated_apart(static)
-    if apart:  # the validation blocks' inputs, on the device once
-        cand = jax.device_get(plan.cand)
-        sig_d, ys_d, us_d = jax.device_put((sig, ys, us))
+    if apart and records is not None:
+        raise ValueError("run_plan: a plan with apart=True validates one record at a time")
+    v_where = {k: plan.where[k] for k in ("v_start", "v_valid", "ob")}
+    if plan.sharding.num_devices == 1:  # the record on the device once, not at every call
+        sig, ys, us = jax.device_put((sig, ys, us))
     program = (fn, static, chunk, tuple(np.shape(x) for x in jax.tree.leaves(
         (sig, ys, us, plan.eta, plan.cand, plan.nm, plan.where))))
     cols, times = [{} for _ in batch], {}
@@ -294,29 +272,20 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
             "h": np.asarray([hd[i][0] for i in idx]),
             "delays": np.asarray([hd[i][1] for i in idx], dtype=np.float64).reshape(chunk, K),
         }
-        delays = g["delays"]
         g = {k: place(v, plan.sharding) for k, v in g.items()}
         t0 = time.perf_counter()
         args = (static, plan.eta, g, plan.cand, plan.nm, plan.where)
-        if len(batch) == 1:  # one record: the program `search` uses
-            res = [jax.block_until_ready(fn(sig, *args))]
-        else:
-            out = jax.device_get(fn(sig, ys, us, *args))
-            res = [jax.tree.map(lambda x, r=r: x[r], out) for r in range(len(records))]
-        if apart:  # the settings repeated to fill the last chunk are not validated
-            res = [{k: v[:real] for k, v in rec.items()} for rec in jax.device_get(res)]
-            flats = [validation_candidates(np, rec, cand, delays[:real]) for rec in res]
-            if len(batch) == 1:
-                val = [validate_apart(sig_d, None, None, flats[0], plan.where, static, False)]
-            else:
-                val = validate_apart(sig_d, ys_d, us_d, {k: np.stack([f[k] for f in flats])
-                                                         for k in flats[0]},
-                                     plan.where, static, True)
-                val = [{k: v[r] for k, v in val.items()} for r in range(len(batch))]
-            for rec, v in zip(res, val):
-                shape = rec["status"].shape
-                rec["status"] = rec["status"] | v.pop("status").reshape(shape).astype(np.int32)
-                rec.update({k: x.reshape(shape) for k, x in v.items()})
+        one = len(batch) == 1  # one record: the program `search` uses
+        out = fn(sig, *args) if one else jax.device_get(fn(sig, ys, us, *args))
+        if apart:  # the settings repeated to fill the last chunk are not simulated
+            count = np.int32(real * Cg)
+            val = validate_blocks(sig, out.pop("slab"), count, v_where, static.v_length)
+            out, val = jax.device_get((out, val))
+            out = {k: v[:real] for k, v in out.items()}
+            out["status"] = out["status"] | val.pop("status")[:count].reshape(real, Cg)
+            out.update({k: v[:count].reshape(real, Cg) for k, v in val.items()})
+        res = ([jax.block_until_ready(out)] if one else
+               [jax.tree.map(lambda x, r=r: x[r], out) for r in range(len(batch))])
         if jax.process_count() > 1:  # multi-host: every process gets every candidate
             from jax.experimental import multihost_utils
 

@@ -74,6 +74,7 @@ class ChunkStatic(eqx.Module):
     v_length: int = eqx.field(static=True)  # validation buffer: the window's length or a bound
     simulate: bool = eqx.field(static=True)
     batch: int = eqx.field(static=True)  # candidates per vmapped validation batch
+    apart: bool = eqx.field(static=True)  # the validation simulations in a program of their own
 
 
 def device_mesh():
@@ -129,7 +130,7 @@ def identification_segments(signals: Signals, identify, fn: str = "search") -> t
 def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
           chunk_size, simulate, span_bound: float = 0.0, identify=None,
           n_padded: int | None = None, v_bound: int | None = None,
-          split: bool = False) -> Plan:
+          split: bool = False, apart: bool = False) -> Plan:
     """Check the grid against the record's shape and build the static parts of `search`.
 
     The record is padded to `n_padded` samples (default `record_bucket`) and the validation
@@ -139,7 +140,14 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     kernels to at least this h + delay, so that plans with different delays share one (the
     on-line identifier). `split`: a grid that fits in one chunk is cut into one chunk per
     core (`search`; a caller that plans grids of many sizes keeps one chunk each, so that
-    sizes do not multiply the compiled chunk shapes)."""
+    sizes do not multiply the compiled chunk shapes). `apart`: with one device, the validation
+    simulations of an E-scored grid run as a program of their own (`validate_blocks`), which
+    every grid on the record's layout with the same largest order and window shares, so a new
+    grid compiles its solves only (`search`: a user trying grid after grid). The on-line
+    identifier and `estimate` plan one grid per record layout and keep them in the chunk: apart,
+    a warm on-line re-identification ran 6.2-6.5 -> 7.6-8.6 ms and its cold run 5.6-5.75 ->
+    6.2-6.3 s (`benchmarks/online_latency.py --quick`), `estimate`'s hold-out search of 100
+    records 676-683 -> 701-709 ms."""
     if not isinstance(signals, Signals):
         raise TypeError("search(): signals must be a Signals")
     if score not in SCORES:
@@ -262,7 +270,7 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
         kernel_bucket(kernel_length(max(h_max + delay_max, span_bound), dt)), degree,
         tuple(sources), tuple(c[2] for c in cols), tuple(c[0] for c in cols[:p]),
         len(jax.devices()), v_bound, bool(simulate),
-        VALIDATION_BATCH,
+        VALIDATION_BATCH, bool(apart),
     )
     mesh = device_mesh()
     n_dev = mesh.devices.size

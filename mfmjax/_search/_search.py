@@ -64,5 +64,6 @@ def search(
                  simulate=simulate, progress=progress, identify=identify)
     plan = plan_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score=score,
                  validate=validate, observer_window=observer_window, eta=eta,
-                 chunk_size=chunk_size, simulate=simulate, identify=identify, split=True)
+                 chunk_size=chunk_size, simulate=simulate, identify=identify, split=True,
+                 apart=True)
     return run_plan(plan, signals, progress, once=True)
