@@ -13,12 +13,13 @@ N, M in {4, 5}, h in {2.5, 3.1} (16 settings; the structures come from the defau
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(__file__))
+import fresh_process  # noqa: E402
 
 CHILD = r"""
 import json, time, warnings
@@ -50,33 +51,12 @@ print(json.dumps(dict(first_s=first, warm_ms=1e3 * float(np.median(warm)), progr
 """
 
 
-def run(pythonpath: str | None) -> dict:
-    env = dict(os.environ, MFMJAX_NO_COMPILE_CACHE="1")
-    if pythonpath:
-        env["PYTHONPATH"] = pythonpath
-    child = CHILD.replace("TESTS", repr(str(Path(__file__).resolve().parents[1] / "tests")))
-    out = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True,
-                         check=True, cwd="/tmp")
-    return json.loads(out.stdout.strip().splitlines()[-1])
-
-
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--compare", help="a directory holding another mfmjax package")
-    ap.add_argument("--json", default=str(Path(__file__).parent / "results" /
-                                          "estimate_first_call.json"))
-    args = ap.parse_args()
-    rows = []
-    for i in range(args.runs):
-        for label, path in [("this", None)] + ([("compare", args.compare)] if args.compare
-                                                else []):
-            r = run(path)
-            r.update(label=label, run=i)
-            rows.append(r)
-            print(f"{label:8s} run {i}: first call {r['first_s']:6.2f} s, "
-                  f"{r['programs']:3d} programs; warm median {r['warm_ms']:6.0f} ms "
-                  f"({r['method']}, n={r['n']}, m={r['m']})", flush=True)
+    args = fresh_process.arguments("estimate_first_call")
+    rows = fresh_process.alternated(args, CHILD, lambda r: print(
+        f"{r['label']:8s} run {r['run']}: first call {r['first_s']:6.2f} s, "
+        f"{r['programs']:3d} programs; warm median {r['warm_ms']:6.0f} ms "
+        f"({r['method']}, n={r['n']}, m={r['m']})", flush=True))
     for label in sorted({r["label"] for r in rows}):
         sel = [r for r in rows if r["label"] == label]
         print(f"{label:8s} first call {min(r['first_s'] for r in sel):.2f}-"

@@ -20,12 +20,13 @@ library's run. Saves benchmarks/results/search_new_grid.json.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(__file__))
+import fresh_process  # noqa: E402
 
 CHILD = r"""
 import json, sys, time
@@ -72,38 +73,18 @@ print(json.dumps(dict(cand_a=len(res_a), first_a_s=first_a, warm_a_ms=warm_a, pr
 """
 
 
-def run(pythonpath: str | None) -> dict:
-    env = dict(os.environ, MFMJAX_NO_COMPILE_CACHE="1")
-    if pythonpath:
-        env["PYTHONPATH"] = pythonpath
-    here = Path(__file__).resolve()
-    child = CHILD.replace("BENCH", repr(str(here.parent))).replace(
-        "TESTS", repr(str(here.parents[1] / "tests")))
-    out = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True,
-                         check=True, cwd="/tmp")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+def show(r: dict) -> None:
+    print(f"{r['label']:8s} run {r['run']}: grid A ({r['cand_a']} cand.) first "
+          f"{r['first_a_s']:5.2f} s warm {r['warm_a_ms']:5.1f} ms | new grid B ({r['cand_b']} cand.) first "
+          f"{r['first_b_s']:5.2f} s warm {r['warm_b_ms']:5.1f} ms, compiled "
+          f"{r['compiled_b']} | peer on B (J only) {1e3 * r['peer_b_s']:5.1f} ms: "
+          f"B's first call {r['first_b_s'] / r['peer_b_s']:4.1f}x, warm "
+          f"{1e-3 * r['warm_b_ms'] / r['peer_b_s']:4.2f}x", flush=True)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--compare", help="a directory holding another mfmjax package")
-    ap.add_argument("--json", default=str(Path(__file__).parent / "results" /
-                                          "search_new_grid.json"))
-    args = ap.parse_args()
-    rows = []
-    for i in range(args.runs):
-        for label, path in [("this", None)] + ([("compare", args.compare)] if args.compare
-                                                else []):
-            r = run(path)
-            r.update(label=label, run=i)
-            rows.append(r)
-            print(f"{label:8s} run {i}: grid A ({r['cand_a']} cand.) first {r['first_a_s']:5.2f} s"
-                  f" warm {r['warm_a_ms']:5.1f} ms | new grid B ({r['cand_b']} cand.) first "
-                  f"{r['first_b_s']:5.2f} s warm {r['warm_b_ms']:5.1f} ms, compiled "
-                  f"{r['compiled_b']} | peer on B (J only) {1e3 * r['peer_b_s']:5.1f} ms: "
-                  f"B's first call {r['first_b_s'] / r['peer_b_s']:4.1f}x, warm "
-                  f"{1e-3 * r['warm_b_ms'] / r['peer_b_s']:4.2f}x", flush=True)
+    args = fresh_process.arguments("search_new_grid")
+    rows = fresh_process.alternated(args, CHILD, show)
     if args.compare:
         this = [r for r in rows if r["label"] == "this"]
         other = [r for r in rows if r["label"] == "compare"]
