@@ -202,6 +202,19 @@ def validate_blocks(sig: Signals, c, count, where, v_length: int):
     return jax.tree.map(lambda v: v.reshape((-1,) + v.shape[2:]), out)
 
 
+def _compile_validation(sig, plan: Plan, where) -> None:
+    """`validate_blocks` run on no candidate (count 0: no block simulated) with the slab's
+    shapes, so that it compiles while the first chunk does (two cores: two compilers). The
+    slab goes in as host arrays here and from the chunk: a chunk's outputs carry the plan's
+    mesh, whose sharding would key another program."""
+    static, K = plan.static, plan.n_inputs
+    size = -(-plan.chunk * len(plan.columns[0]) // VALIDATION_SLAB) * VALIDATION_SLAB
+    slab = {"a": np.zeros((size, static.n_max + 1)), "b": np.zeros((size, K, static.n_max + 1)),
+            "offset": np.zeros(size), "n": np.ones(size, np.int32), "k": np.zeros(size),
+            "delays": np.zeros((size, K))}
+    jax.block_until_ready(validate_blocks(sig, slab, np.int32(0), where, static.v_length))
+
+
 chunk_jit = jit(evaluate_chunk)
 chunk_jit_once = jit(evaluate_chunk, options=RUN_ONCE_OPTIONS)  # a one-chunk search
 
@@ -261,7 +274,7 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
         sig, ys, us = jax.device_put((sig, ys, us))
     program = (fn, static, chunk, tuple(np.shape(x) for x in jax.tree.leaves(
         (sig, ys, us, plan.eta, plan.cand, plan.nm, plan.where))))
-    cols, times = [{} for _ in batch], {}
+    cols, times, early = [{} for _ in batch], {}, []
     done, lock = [0], threading.Lock()
 
     def run_chunk(c0):
@@ -279,7 +292,10 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
         out = fn(sig, *args) if one else jax.device_get(fn(sig, ys, us, *args))
         if apart:  # the settings repeated to fill the last chunk are not simulated
             count = np.int32(real * Cg)
-            val = validate_blocks(sig, out.pop("slab"), count, v_where, static.v_length)
+            for f in early:  # its compile on another thread (first chunk of a new program)
+                f.result()
+            val = validate_blocks(sig, jax.device_get(out.pop("slab")), count, v_where,
+                                  static.v_length)
             out, val = jax.device_get((out, val))
             out = {k: v[:real] for k, v in out.items()}
             out["status"] = out["status"] | val.pop("status")[:count].reshape(real, Cg)
@@ -306,7 +322,13 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
     t_start = time.perf_counter()
     layout = _COLUMNS.get(program)
     if layout is None:  # a new program: its first chunk alone (it compiles; columns allocated)
-        run_chunk(starts[0])
+        if apart:  # the validation program compiles on another thread meanwhile
+            with ThreadPoolExecutor(max_workers=1) as pool:
+                early.append(pool.submit(_compile_validation, sig, plan, v_where))
+                run_chunk(starts[0])
+            early.clear()
+        else:
+            run_chunk(starts[0])
         rest = starts[1:]
         _COLUMNS[program] = [{k: (v.shape[1:], v.dtype) for k, v in col.items()} for col in cols]
     else:  # it ran before: every chunk may run at once
