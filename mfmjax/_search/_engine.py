@@ -133,11 +133,17 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
     if not static.simulate:  # equation error only (score J)
         nan = jnp.full(shape, jnp.nan)
         return dict(out, E=nan, fit=nan, aic=nan, bic=nan, status=out["status"].astype(jnp.int32))
-    flat = validation_candidates(out, cand, groups["delays"])
+    flat = {  # the padded models of the (G, C) solves as one axis (`validate_candidate`'s c)
+        "a": out["a"].reshape(-1, n_max + 1),
+        "b": out["b"].reshape(-1, K, n_max + 1),
+        "offset": out["offset"].reshape(-1),
+        "n": jnp.broadcast_to(cand["n"], shape).reshape(-1),
+        "k": jnp.broadcast_to(cand["k"], shape).reshape(-1),
+        "delays": jnp.broadcast_to(groups["delays"][:, None, :], shape + (K,)).reshape(-1, K),
+    }
     if validated_apart(static):  # the validation simulations: `validate_blocks`, after it,
         # on the candidates padded to whole slabs (the last repeated)
-        size = -(-flat["n"].shape[0] // VALIDATION_SLAB) * VALIDATION_SLAB
-        idx = jnp.minimum(jnp.arange(size), flat["n"].shape[0] - 1)
+        idx = jnp.minimum(jnp.arange(slab_size(G * C)), G * C - 1)
         return dict(out, status=out["status"].astype(jnp.int32),
                     slab=jax.tree.map(lambda x: x[idx], flat))
     val = in_blocks(lambda c: validate_candidate(sig, static.v_length, c, where), flat,
@@ -155,25 +161,15 @@ def validated_apart(static: ChunkStatic) -> bool:
     return static.simulate and static.apart and static.devices == 1
 
 
-def validation_candidates(out, cand, delays):
-    """The padded models of a chunk's (G, C) solves as one flat axis (`validate_candidate`'s
-    `c`)."""
-    shape = out["status"].shape
-    n_max, K = out["a"].shape[-1] - 1, delays.shape[-1]
-    return {
-        "a": out["a"].reshape(-1, n_max + 1),
-        "b": out["b"].reshape(-1, K, n_max + 1),
-        "offset": out["offset"].reshape(-1),
-        "n": jnp.broadcast_to(cand["n"], shape).reshape(-1),
-        "k": jnp.broadcast_to(cand["k"], shape).reshape(-1),
-        "delays": jnp.broadcast_to(delays[:, None, :], shape + (K,)).reshape(-1, K),
-    }
-
-
 # a chunk's candidates go to the validation program padded to a multiple of this (32 blocks):
 # the programs of all chunks up to this size are one; the blocks beyond the chunk's own
 # candidates are skipped
 VALIDATION_SLAB = 32 * VALIDATION_BATCH
+
+
+def slab_size(count: int) -> int:
+    """The validation program's candidate count for a chunk of `count` candidates."""
+    return -(-count // VALIDATION_SLAB) * VALIDATION_SLAB
 
 
 @jit
@@ -208,7 +204,7 @@ def _compile_validation(sig, plan: Plan, where) -> None:
     slab goes in as host arrays here and from the chunk: a chunk's outputs carry the plan's
     mesh, whose sharding would key another program."""
     static, K = plan.static, plan.n_inputs
-    size = -(-plan.chunk * len(plan.columns[0]) // VALIDATION_SLAB) * VALIDATION_SLAB
+    size = slab_size(plan.chunk * len(plan.columns[0]))
     slab = {"a": np.zeros((size, static.n_max + 1)), "b": np.zeros((size, K, static.n_max + 1)),
             "offset": np.zeros(size), "n": np.ones(size, np.int32), "k": np.zeros(size),
             "delays": np.zeros((size, K))}
