@@ -30,8 +30,8 @@ from ._output_error import (
 from ._padded import observe_candidate, padded_model
 from ._pytree import replace_fields
 from ._search import SearchResult, plan_search, run_plan
-from ._search._grid import CHUNK_SETTINGS
-from ._selection import OBSERVER_FRACTION, holdout_search, rank_by
+from ._search._grid import CHUNK_SETTINGS, grid_values, structures
+from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
 from ._signals import Signals
 from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc, srivc_many
 from ._status import Status, describe
@@ -148,8 +148,11 @@ def estimate(
     else:
         if m is None:  # feed-through (m_k = n) in the grid: the held-back data decide
             m = [list(range(int(np.max(n)) + 1))] * first.n_inputs
-        sels = holdout_search(first, estimation=identify, holdout=holdout, folds=folds, n=n,
-                              N=N, M=M, h=h, m=m, delays=delays, records=records)
+        grid = dict(n=n, N=N, M=M, h=h, m=m, delays=delays)
+        stages = dict(holdout=holdout, polish=polish, max_iter=max_iter, tol=tol)
+        sels = holdout_search(first, estimation=identify, holdout=holdout, folds=folds,
+                              records=records, meanwhile=_rehearsal(
+                                  records, identify, folds, grid, stages), **grid)
         outs = _from_holdout(records, sels, holdout=holdout, polish=polish, max_iter=max_iter,
                              tol=tol)
     outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes
@@ -163,6 +166,78 @@ def estimate(
     return outs[0] if single else tuple(outs)
 
 
+_REHEARSED: set = set()  # stage layouts whose programs this process has compiled
+
+
+def _rehearsal(records: list, identify, folds: int, grid: dict, stages: dict):
+    """On a stage layout's first call (record length, rules, hold-out windows, largest order,
+    stage settings) for one record: a function that runs the stages after the search
+    (`_from_holdout`) on the record from a stand-in search result, one stable candidate per
+    structure of the grid, its results discarded. `holdout_search` calls it while its own
+    runs (and compiles) go on a second thread, so the stages' programs (the hold-out
+    observer, SRIVC, output error) compile on the other core meanwhile: the same calls on the
+    same layout, hence the programs the real stages then find compiled. None when there is
+    nothing to rehearse: a layout seen before; several estimation windows (no stages); a
+    batch, whose stages run in chunks of records that one record's rehearsal would not
+    compile, while their run time, not the compiles, dominates its call."""
+    first = records[0]
+    if len(records) > 1:
+        return None
+    fold_windows, est = holdout_folds(first, identify, stages["holdout"], folds)
+    structs = structures(grid_values(grid["n"], "n"), grid["m"], first.n_inputs)
+    n_max = max(s[0] for s in structs)
+    start = lambda w: round((w - first.t0) / first.dt)  # noqa: E731 (t0 enters no program)
+    windows = tuple(tuple(start(x) for x in np.ravel(w)) for w in
+                    [*(np.hstack([np.ravel(f), h]) for f, h in fold_windows), *est])
+    key = (first.n_samples, first.dt, first.n_inputs, first.intersample, first.offset,
+           windows, n_max, tuple(sorted(stages.items())))
+    if key in _REHEARSED or len(est) > 1:
+        return None
+
+    def rehearse():
+        h = float(grid_values(grid["h"], "h")[0])
+        stand_in = _stand_in(first, structs, h, fold_windows, est)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                _from_holdout([first], [stand_in], rehearsal=True, **stages)
+            except Exception:  # noqa: BLE001 (speculative: the real stages compile what it missed)
+                pass
+        _REHEARSED.add(key)
+
+    return rehearse
+
+
+def _stand_in(first: Signals, structs: list, h: float, fold_windows, est) -> HoldoutSearch:
+    """A `HoldoutSearch` on `first`'s layout holding one candidate per structure: poles at
+    -1/h, unit static gain from every input, arrays of the search's dtypes and padded
+    layout."""
+    K, C = first.n_inputs, len(structs)
+    n_max = max(s[0] for s in structs)
+    m_max = tuple(max(s[1][k] for s in structs) for k in range(K))
+    a = np.zeros((C, n_max + 1))
+    b = np.zeros((C, K, max(m_max, default=0) + 1))
+    theta = np.zeros((C, n_max + 1 + sum(mk + 1 for mk in m_max) + int(first.offset)))
+    for j, (n, _) in enumerate(structs):
+        a[j, : n + 1] = np.poly(np.full(n, -1.0 / h))[::-1]  # ascending, a_n = 1
+        b[j, :, 0] = a[j, 0]
+        theta[j, : n + 1] = a[j, : n + 1]
+        if K:
+            theta[j, n_max + 1 + np.cumsum((0, *(mk + 1 for mk in m_max[:-1])))] = a[j, 0]
+    one = np.ones(C)
+    cols = dict(n=np.asarray([s[0] for s in structs]),
+                m=np.asarray([s[1] for s in structs]).reshape(C, K), N=one * n_max,
+                M=one * n_max, h=one * h,
+                delays=np.tile(np.asarray(first.delays, np.float64).reshape(1, K), (C, 1)),
+                J=one, J_raw=one, E=one, fit=one, aic=one, bic=one, cond=one,
+                status=np.zeros(C, np.int32), theta=theta, a=a, b=b, offset=np.zeros(C))
+    res = SearchResult(columns=cols, rank=np.arange(C), score="E", n_max=n_max, m_max=m_max,
+                       intersample=first.intersample, has_offset=first.offset,
+                       output_name=first.output_name, input_names=first.input_names,
+                       compile_s=0.0, run_s=0.0)
+    return HoldoutSearch(tuple(res for _ in fold_windows), one, res, fold_windows, est)
+
+
 def _reason(est: Estimate) -> str:
     if est.output_error is not None and est.method.endswith("output error"):
         return est.output_error.result
@@ -173,10 +248,15 @@ def _observed(signals: Signals, candidate: dict, **kw):
     return observe_candidate(signals.unlabelled(), candidate, **kw)
 
 
-def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
+def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=False) -> list:
     """The stages of `estimate` after its hold-out search, every stage over all records and
     candidates in chunks of one compiled call, every structure zero-padded to the grid's
-    largest order (SRIVC, the observers, and output error for a batch)."""
+    largest order (SRIVC, the observers, and output error for a batch). `rehearsal`
+    (`_rehearsal`'s stand-in run) takes the path most records take: the output-error polish
+    replaces SRIVC only with `polish=True`, and SRIVC that did not converge is not rescued
+    (no fallback candidates, no output error from its best iterate), so that programs a
+    record rarely needs (output error on all estimation data) compile only when one does."""
+    rescue = not rehearsal
     R, sel0 = len(records), sels[0]
     if len(sel0.refit) == 0:
         raise ValueError("estimate(): the search grid has no feasible candidate; widen N, M or h")
@@ -295,7 +375,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
             live = [r for r in range(R) if oe[r] is not None]
             for r, (E_oe, fit_oe) in zip(live, hold_scores([(r, oe[r]) for r in live])):
                 stage = "srivc + output error" if best[r][3] == "srivc" else "output error"
-                if polish or E_oe < (1 - POLISH_GAIN) * best[r][0]:
+                if polish or (E_oe < (1 - POLISH_GAIN) * best[r][0] and rescue):
                     best[r] = (E_oe, fit_oe, best[r][2], stage, oe[r])
     # the chosen stage on all estimation data, from the same candidate re-identified there
     starts = [sels[r].refit.best(best[r][2]) for r in range(R)]
@@ -313,7 +393,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
         ranked = [sorted((x for x in t if x[3] == "srivc" and x[2] != best[r][2]), key=key)
                   for r, t in enumerate(tried)]
         fell = {}
-        for attempt in range(FALLBACKS):
+        for attempt in range(FALLBACKS if rescue else 0):
             redo = [r for r in sv_rec if methods[r] == "srivc" and len(ranked[r]) > attempt
                     and fits[r] is not None and not fits[r].converged]
             alt = [stabilised(sels[r].refit.best(ranked[r][attempt][2])) for r in redo]
@@ -329,7 +409,8 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol) -> list:
                     best[r], starts[r], seeds[r], fits[r] = ranked[r][attempt], \
                         sels[r].refit.best(ranked[r][attempt][2]), a, fit
         for r in sv_rec:  # none converged: output error from SRIVC's best iterate
-            if methods[r] == "srivc" and fits[r] is not None and not fits[r].converged:
+            if rescue and methods[r] == "srivc" and fits[r] is not None and \
+                    not fits[r].converged:
                 methods[r] = "srivc + output error"
                 oe_rec.append(r)
                 fell[r] = (f"SRIVC did not converge on all estimation data "

@@ -10,6 +10,7 @@ data share one program.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import jax
@@ -66,12 +67,14 @@ def holdout_folds(signals: Signals, estimation, holdout: float, folds: int = FOL
 
 def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
                    folds: int = FOLDS, n, N, M, h, m=None, delays=None,
-                   chunk_size: int = 8, records=None):
+                   chunk_size: int = 8, records=None, meanwhile=None):
     """Search the grid once per fold with its hold-out window left out of the Gram, rank by
     the mean E over the hold-out windows, then identify the same candidates on all
     estimation windows. Every run shares one compiled program (windows are values). With
     `records` (`Signals` of `signals`' layout) every run covers all of them in one call and
-    one `HoldoutSearch` per record is returned."""
+    one `HoldoutSearch` per record is returned. `meanwhile`: a function called on this
+    thread, once the grid is checked, while the runs go on a second thread (`estimate`
+    compiles its later stages in it; the runs emit no warnings)."""
     fold_windows, est = holdout_folds(signals, estimation, holdout, folds)
     fit0, hold0 = fold_windows[0]
     # the hold-out blocks must carry an observer (eq. 14) of the largest order: said here in
@@ -103,8 +106,16 @@ def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
             "v_start": np.int32(round((hold[0] - signals.t0) / signals.dt))}))
         return run_plan(plan._replace(where=where), signals, records=batch)
 
-    fitted = [run(fw, hw) for fw, hw in fold_windows]  # [fold][record]
-    refits = run(est, fold_windows[-1][1])
+    def runs():
+        return [run(fw, hw) for fw, hw in fold_windows], run(est, fold_windows[-1][1])
+
+    if meanwhile is None:
+        fitted, refits = runs()  # [fold][record], [record]
+    else:
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            job = pool.submit(runs)
+            meanwhile()
+            fitted, refits = job.result()
     out = []
     for r, refit in enumerate(refits):
         per_fold = [f[r] for f in fitted]

@@ -206,6 +206,61 @@ def test_estimate_bic_one_record_compiles_nothing_for_another_order(batch_20db):
     assert names == [], names
 
 
+def test_estimate_compiles_its_stages_while_the_search_runs(noisy, monkeypatch):
+    """A layout's first `estimate` call rehearses the stages after the search (the hold-out
+    observer, SRIVC, output error) on a stand-in search result while the search runs on a
+    second thread (`_rehearsal`). The rehearsal compiles exactly the programs the stages then
+    use: the real stages compile nothing, the call as a whole compiles the same programs as
+    without the rehearsal, each once, and the estimate is bitwise the same."""
+    import collections
+
+    import jax
+    from jaxlog import compiles
+
+    from mfmjax import _estimate, _executables
+
+    sig, _ = noisy
+    real_rehearsal, real_stages = _estimate._rehearsal, _estimate._from_holdout
+
+    def first_call(rehearse: bool):
+        jax.clear_caches()  # as a new process (the session cache still saves XLA's work)
+        _executables.clear()
+        monkeypatch.setattr(_estimate, "_REHEARSED", set())
+        marks, base = {}, len(_executables.loaded)
+        # programs so far: compiled (JAX's log) and loaded (stored executables, which
+        # `compiles` adds at the end of its block)
+        seen = lambda: collections.Counter(names + _executables.loaded[base:])  # noqa: E731
+
+        def rehearsal(*args):
+            run = real_rehearsal(*args)
+            assert run is not None  # a new layout: rehearsed
+            return lambda: (run(), marks.setdefault("rehearsed", seen()))
+
+        def stages(*args, **kw):
+            if "rehearsed" in marks or not rehearse:  # not the rehearsal's own call
+                marks.setdefault("stages", seen())
+            return real_stages(*args, **kw)
+
+        monkeypatch.setattr(_estimate, "_from_holdout", stages)
+        monkeypatch.setattr(_estimate, "_rehearsal", rehearsal if rehearse else lambda *a: None)
+        with compiles() as names:
+            est = mfmjax.estimate(sig, **GRID)
+        return est, collections.Counter(names), marks
+
+    plain, plain_names, _ = first_call(False)
+    est, names, marks = first_call(True)
+    # the real stages start after the rehearsal and compile nothing of their own ...
+    assert names - marks["stages"] == collections.Counter(), names - marks["stages"]
+    assert {"jit(run)", "jit(_lm)", "jit(observe_candidate)", "jit(_mapped)"} <= set(
+        marks["rehearsed"])
+    # ... and the call compiles what it compiled without the rehearsal: nothing extra, nothing
+    # twice (the stand-in takes the real stages' paths on the real record)
+    assert names == plain_names
+    assert est.method == plain.method and est.model.structure == plain.model.structure
+    for a, b in ((est.model.theta, plain.model.theta), (est.std_errors, plain.std_errors)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_estimate_batch_refuses_mixed_layouts(noisy):
     sig, _ = noisy
     short = mfmjax.Signals(sig.y[:-5], sig.u[:-5], dt=DT, intersample=["zoh"])
