@@ -131,3 +131,14 @@ def in_parallel(run, chunks) -> list:
         with ThreadPoolExecutor(max_workers=min(WORKERS, len(rest))) as pool:
             done += pool.map(run, rest)
     return done
+
+
+def overlapped(run, meanwhile):
+    """`run()` on a second thread while `meanwhile()` (None: nothing) runs on this one, e.g. a
+    search while the stages after it compile; `run`'s result (or its exception)."""
+    if meanwhile is None:
+        return run()
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        job = pool.submit(run)
+        meanwhile()
+        return job.result()

@@ -16,7 +16,7 @@ import equinox as eqx
 import numpy as np
 
 from . import _boundary as _b
-from ._batch import as_records, map_pairs
+from ._batch import as_records, map_pairs, overlapped
 from ._boundary import check_search
 from ._model import Model, is_stable
 from ._observers import fit_percent, validation_window
@@ -143,7 +143,9 @@ def estimate(
         kw = dict(n=n, N=N, M=M, h=h, m=m, delays=delays, score=score, validate=validate,
                   observer_window=None, eta=None, chunk_size=CHUNK_SETTINGS, simulate=True)
         check_search(first, progress=None, **kw)
-        results = run_plan(plan_search(first, **kw), first, records=records)
+        plan = plan_search(first, **kw)
+        results = overlapped(lambda: run_plan(plan, first, records=records), _rehearsal(
+            records, kw, dict(polish=bool(polish), max_iter=max_iter, tol=tol)))
         outs = _from_search(records, results, polish=bool(polish), max_iter=max_iter, tol=tol)
     else:
         if m is None:  # feed-through (m_k = n) in the grid: the held-back data decide
@@ -152,7 +154,9 @@ def estimate(
         stages = dict(holdout=holdout, polish=polish, max_iter=max_iter, tol=tol)
         sels = holdout_search(first, estimation=identify, holdout=holdout, folds=folds,
                               records=records, meanwhile=_rehearsal(
-                                  records, identify, folds, grid, stages), **grid)
+                                  records, grid, stages, holdout_folds(first, identify,
+                                                                       holdout, folds)),
+                              **grid)
         outs = _from_holdout(records, sels, holdout=holdout, polish=polish, max_iter=max_iter,
                              tol=tol)
     outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes
@@ -169,38 +173,41 @@ def estimate(
 _REHEARSED: set = set()  # stage layouts whose programs this process has compiled
 
 
-def _rehearsal(records: list, identify, folds: int, grid: dict, stages: dict):
-    """On a stage layout's first call (record length, rules, hold-out windows, largest order,
-    stage settings) for one record: a function that runs the stages after the search
-    (`_from_holdout`) on the record from a stand-in search result, one stable candidate per
-    structure of the grid, its results discarded. `holdout_search` calls it while its own
-    runs (and compiles) go on a second thread, so the stages' programs (the hold-out
-    observer, SRIVC, output error) compile on the other core meanwhile: the same calls on the
-    same layout, hence the programs the real stages then find compiled. None when there is
-    nothing to rehearse: a layout seen before; several estimation windows (no stages); a
-    batch, whose stages run in chunks of records that one record's rehearsal would not
-    compile, while their run time, not the compiles, dominates its call."""
+def _rehearsal(records: list, grid: dict, stages: dict, windows=None):
+    """On a stage layout's first call for one record (record length, rules, largest order,
+    stage settings; `windows`: the hold-out path's (folds, estimation windows) from
+    `holdout_folds`, None for `selection="bic"`): a function that runs the stages after the
+    search (`_from_holdout`, or `_from_search`) on the record from a stand-in search result,
+    one stable candidate per structure of the grid, its results discarded. The search runs
+    on a second thread meanwhile (`overlapped`), so the stages' programs (the hold-out
+    observer, SRIVC, output error) compile on the other core while its chunks compile: the
+    same calls on the same layout, hence the programs the real stages then find compiled.
+    None when there is nothing to rehearse: a layout seen before; several estimation windows
+    (no stages); a batch, whose stages run in chunks of records that one record's rehearsal
+    would not compile, while their run time, not the compiles, dominates its call."""
     first = records[0]
-    if len(records) > 1:
+    if len(records) > 1 or (windows is not None and len(windows[1]) > 1):
         return None
-    fold_windows, est = holdout_folds(first, identify, stages["holdout"], folds)
     structs = structures(grid_values(grid["n"], "n"), grid["m"], first.n_inputs)
-    n_max = max(s[0] for s in structs)
     start = lambda w: round((w - first.t0) / first.dt)  # noqa: E731 (t0 enters no program)
-    windows = tuple(tuple(start(x) for x in np.ravel(w)) for w in
-                    [*(np.hstack([np.ravel(f), h]) for f, h in fold_windows), *est])
     key = (first.n_samples, first.dt, first.n_inputs, first.intersample, first.offset,
-           windows, n_max, tuple(sorted(stages.items())))
-    if key in _REHEARSED or len(est) > 1:
+           max(s[0] for s in structs), tuple(sorted(stages.items())),
+           None if windows is None else tuple(start(x) for x in np.hstack(
+               [np.ravel(w) for f, h in windows[0] for w in (*f, h)] + [np.ravel(windows[1])])))
+    if key in _REHEARSED:
         return None
 
     def rehearse():
-        h = float(grid_values(grid["h"], "h")[0])
-        stand_in = _stand_in(first, structs, h, fold_windows, est)
+        res = _stand_in(first, structs, float(grid_values(grid["h"], "h")[0]))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
-                _from_holdout([first], [stand_in], rehearsal=True, **stages)
+                if windows is None:
+                    _from_search([first], [res], **stages)
+                else:
+                    folds, est = windows
+                    _from_holdout([first], [HoldoutSearch(tuple(res for _ in folds), np.ones(
+                        len(res)), res, folds, est)], rehearsal=True, **stages)
             except Exception:  # noqa: BLE001 (speculative: the real stages compile what it missed)
                 pass
         _REHEARSED.add(key)
@@ -208,10 +215,10 @@ def _rehearsal(records: list, identify, folds: int, grid: dict, stages: dict):
     return rehearse
 
 
-def _stand_in(first: Signals, structs: list, h: float, fold_windows, est) -> HoldoutSearch:
-    """A `HoldoutSearch` on `first`'s layout holding one candidate per structure: poles at
-    -1/h, unit static gain from every input, arrays of the search's dtypes and padded
-    layout."""
+def _stand_in(first: Signals, structs: list, h: float) -> SearchResult:
+    """A search result on `first`'s layout holding one candidate per structure: poles at
+    -1/h, unit static gain from every input, arrays of the search's dtypes and padded layout
+    (N = M = n_max: the stages do not read them)."""
     K, C = first.n_inputs, len(structs)
     n_max = max(s[0] for s in structs)
     m_max = tuple(max(s[1][k] for s in structs) for k in range(K))
@@ -231,11 +238,10 @@ def _stand_in(first: Signals, structs: list, h: float, fold_windows, est) -> Hol
                 delays=np.tile(np.asarray(first.delays, np.float64).reshape(1, K), (C, 1)),
                 J=one, J_raw=one, E=one, fit=one, aic=one, bic=one, cond=one,
                 status=np.zeros(C, np.int32), theta=theta, a=a, b=b, offset=np.zeros(C))
-    res = SearchResult(columns=cols, rank=np.arange(C), score="E", n_max=n_max, m_max=m_max,
-                       intersample=first.intersample, has_offset=first.offset,
-                       output_name=first.output_name, input_names=first.input_names,
-                       compile_s=0.0, run_s=0.0)
-    return HoldoutSearch(tuple(res for _ in fold_windows), one, res, fold_windows, est)
+    return SearchResult(columns=cols, rank=np.arange(C), score="E", n_max=n_max, m_max=m_max,
+                        intersample=first.intersample, has_offset=first.offset,
+                        output_name=first.output_name, input_names=first.input_names,
+                        compile_s=0.0, run_s=0.0)
 
 
 def _reason(est: Estimate) -> str:

@@ -10,12 +10,12 @@ data share one program.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import jax
 import numpy as np
 
+from ._batch import overlapped
 from ._observers import MIN_WINDOW
 from ._pytree import replace_fields
 from ._search import SearchResult, plan_search, run_plan
@@ -109,13 +109,7 @@ def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
     def runs():
         return [run(fw, hw) for fw, hw in fold_windows], run(est, fold_windows[-1][1])
 
-    if meanwhile is None:
-        fitted, refits = runs()  # [fold][record], [record]
-    else:
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            job = pool.submit(runs)
-            meanwhile()
-            fitted, refits = job.result()
+    fitted, refits = overlapped(runs, meanwhile)  # [fold][record], [record]
     out = []
     for r, refit in enumerate(refits):
         per_fold = [f[r] for f in fitted]

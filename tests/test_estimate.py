@@ -206,12 +206,18 @@ def test_estimate_bic_one_record_compiles_nothing_for_another_order(batch_20db):
     assert names == [], names
 
 
-def test_estimate_compiles_its_stages_while_the_search_runs(noisy, monkeypatch):
+@pytest.mark.parametrize("selection, stages_fn, programs", [
+    ("holdout", "_from_holdout", {"jit(run)", "jit(_lm)", "jit(observe_candidate)",
+                                  "jit(_mapped)"}),
+    ("bic", "_from_search", {"jit(run)", "jit(_lm)", "jit(observe_candidate)"})])
+def test_estimate_compiles_its_stages_while_the_search_runs(noisy, monkeypatch, selection,
+                                                             stages_fn, programs):
     """A layout's first `estimate` call rehearses the stages after the search (the hold-out
     observer, SRIVC, output error) on a stand-in search result while the search runs on a
     second thread (`_rehearsal`). The rehearsal compiles exactly the programs the stages then
     use: the real stages compile nothing, the call as a whole compiles the same programs as
-    without the rehearsal, each once, and the estimate is bitwise the same."""
+    without the rehearsal, each once, and the estimate is bitwise the same. With
+    `selection="bic"` (SRIVC from the search's winner, output error with `polish=True`) too."""
     import collections
 
     import jax
@@ -220,7 +226,8 @@ def test_estimate_compiles_its_stages_while_the_search_runs(noisy, monkeypatch):
     from mfmjax import _estimate, _executables
 
     sig, _ = noisy
-    real_rehearsal, real_stages = _estimate._rehearsal, _estimate._from_holdout
+    real_rehearsal, real_stages = _estimate._rehearsal, getattr(_estimate, stages_fn)
+    kw = dict(GRID, selection=selection, polish=True if selection == "bic" else None)
 
     def first_call(rehearse: bool):
         jax.clear_caches()  # as a new process (the session cache still saves XLA's work)
@@ -241,18 +248,17 @@ def test_estimate_compiles_its_stages_while_the_search_runs(noisy, monkeypatch):
                 marks.setdefault("stages", seen())
             return real_stages(*args, **kw)
 
-        monkeypatch.setattr(_estimate, "_from_holdout", stages)
+        monkeypatch.setattr(_estimate, stages_fn, stages)
         monkeypatch.setattr(_estimate, "_rehearsal", rehearsal if rehearse else lambda *a: None)
         with compiles() as names:
-            est = mfmjax.estimate(sig, **GRID)
+            est = mfmjax.estimate(sig, **kw)
         return est, collections.Counter(names), marks
 
     plain, plain_names, _ = first_call(False)
     est, names, marks = first_call(True)
     # the real stages start after the rehearsal and compile nothing of their own ...
     assert names - marks["stages"] == collections.Counter(), names - marks["stages"]
-    assert {"jit(run)", "jit(_lm)", "jit(observe_candidate)", "jit(_mapped)"} <= set(
-        marks["rehearsed"])
+    assert programs <= set(marks["rehearsed"])
     # ... and the call compiles what it compiled without the rehearsal: nothing extra, nothing
     # twice (the stand-in takes the real stages' paths on the real record)
     assert names == plain_names
