@@ -43,7 +43,8 @@ _memory: dict = {}  # (wrapper, static, treedef, avals) -> jax Compiled, or None
 _by_name: dict = {}  # file name -> jax Compiled, loaded or compiled in this process
 stats = {"loaded": 0, "written": 0, "compiled": 0}  # this process's counts (tests, benchmarks)
 loaded: list[str] = []  # names of the programs loaded, as JAX's compile log names them
-_compiling = threading.Lock()  # `_fresh_compile` switches a process-wide flag: one at a time
+_switch = threading.Lock()  # guards `_fresh`: compiles on several threads share the switch
+_fresh = {"depth": 0, "previous": None}  # fresh compiles under way; JAX's flag before them
 
 try:  # equinox internals, resolved once (equinox>=0.13.8); without them nothing is stored
     from equinox._jit import _postprocess, _preprocess
@@ -191,15 +192,25 @@ def _fresh_compile():
         from jax._src import compilation_cache as cc
 
         cc.is_cache_used(jax.devices()[0].client)  # JAX decides once per process
-        previous = cc._cache_used
+        cc._cache_used  # noqa: B018 (the switch exists)
     except (ImportError, AttributeError):  # pragma: no cover - another jax: store nothing
         yield False
         return
-    cc._cache_used = False
+    # the switch is process-wide: the first of concurrent fresh compiles turns it off, the
+    # last restores it (a plain compile on another thread meanwhile bypasses JAX's cache too:
+    # compiled rather than read, and not written)
+    with _switch:
+        if _fresh["depth"] == 0:
+            _fresh["previous"] = cc._cache_used
+            cc._cache_used = False
+        _fresh["depth"] += 1
     try:
         yield True
     finally:
-        cc._cache_used = previous
+        with _switch:
+            _fresh["depth"] -= 1
+            if _fresh["depth"] == 0:
+                cc._cache_used = _fresh["previous"]
 
 
 @functools.cache
@@ -254,7 +265,7 @@ def _compile_and_store(lowered, path):
     calls = _custom_calls(lowered)
     if any(not c.startswith("lapack_") for c in calls):
         return None  # a kernel whose set-up in a new process is not known here: never stored
-    with _compiling, _fresh_compile() as fresh:
+    with _fresh_compile() as fresh:
         compiled = lowered.compile()
     stats["compiled"] += 1
     if fresh:

@@ -486,3 +486,44 @@ def test_a_plain_jax_writer_in_the_same_directory_does_not_block_writes(tmp_path
         subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True)
     names = [p.name for p in tmp_path.iterdir() if p.name.endswith("-cache")]
     assert len([n for n in names if n.startswith("jit__lambda")]) == 2, names
+
+
+def test_fresh_compiles_on_two_threads_share_jax_cache_switch():
+    """A stored executable compiles with JAX's persistent cache switched off, a process-wide
+    switch (`_executables._fresh_compile`). Compiles on two threads at once (a search's
+    chunk and its validation program, `estimate`'s search and its rehearsed stages) share it:
+    the switch stays off until the last of them ends, and is then restored (with a save and
+    restore per compile, the second compile's exit turned JAX's cache off for the process;
+    compiles were serialised to avoid that)."""
+    import threading
+
+    from jax._src import compilation_cache as cc
+
+    from mfmjax._executables import _fresh_compile
+
+    cc.is_cache_used(jax.devices()[0].client)
+    before = cc._cache_used
+    entered, first_out, seen = threading.Event(), threading.Event(), []
+
+    def first():
+        with _fresh_compile() as fresh:
+            assert fresh
+            entered.set()
+            while len(seen) < 1:  # the second compile is inside too
+                threading.Event().wait(0.01)
+        first_out.set()
+
+    def second():
+        entered.wait()
+        with _fresh_compile():
+            seen.append(cc._cache_used)
+            first_out.wait()
+            seen.append(cc._cache_used)  # the first compile ended, this one goes on
+
+    threads = [threading.Thread(target=f) for f in (first, second)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert seen == [False, False]
+    assert cc._cache_used == before
