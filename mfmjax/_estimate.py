@@ -148,8 +148,10 @@ def estimate(
             records, kw, dict(polish=bool(polish), max_iter=max_iter, tol=tol)))
         outs = _from_search(records, results, polish=bool(polish), max_iter=max_iter, tol=tol)
     else:
+        n_grid = _b.integers("estimate", "n", n, lo=1,
+                             fix="orders are whole numbers, e.g. n=(1, 2, 3)")
         if m is None:  # feed-through (m_k = n) in the grid: the held-back data decide
-            m = [list(range(int(np.max(n)) + 1))] * first.n_inputs
+            m = [list(range(max(n_grid) + 1))] * first.n_inputs
         grid = dict(n=n, N=N, M=M, h=h, m=m, delays=delays)
         stages = dict(holdout=holdout, polish=polish, max_iter=max_iter, tol=tol)
         sels = holdout_search(first, estimation=identify, holdout=holdout, folds=folds,
@@ -182,22 +184,28 @@ def _rehearsal(records: list, grid: dict, stages: dict, windows=None):
     on a second thread meanwhile (`overlapped`), so the stages' programs (the hold-out
     observer, SRIVC, output error) compile on the other core while its chunks compile: the
     same calls on the same layout, hence the programs the real stages then find compiled.
-    None when there is nothing to rehearse: a layout seen before; several estimation windows
-    (no stages); a batch, whose stages run in chunks of records that one record's rehearsal
-    would not compile, while their run time, not the compiles, dominates its call."""
+    Nothing is rehearsed for a layout seen before or several estimation windows (no
+    stages), and for a batch (None), whose stages run in chunks of records that one record's
+    rehearsal would not compile, while their run time, not the compiles, dominates its call.
+    The grid is read only when the function runs, after the search has checked it (a bad
+    grid gets the search's error)."""
     first = records[0]
-    if len(records) > 1 or (windows is not None and len(windows[1]) > 1):
-        return None
-    structs = structures(grid_values(grid["n"], "n"), grid["m"], first.n_inputs)
-    start = lambda w: round((w - first.t0) / first.dt)  # noqa: E731 (t0 enters no program)
-    key = (first.n_samples, first.dt, first.n_inputs, first.intersample, first.offset,
-           max(s[0] for s in structs), tuple(sorted(stages.items())),
-           None if windows is None else tuple(start(x) for x in np.hstack(
-               [np.ravel(w) for f, h in windows[0] for w in (*f, h)] + [np.ravel(windows[1])])))
-    if key in _REHEARSED:
+    if len(records) > 1:
         return None
 
-    def rehearse():
+    def rehearse():  # called once the search has checked the grid
+        if windows is not None and len(windows[1]) > 1:
+            return
+        structs = structures(grid_values(grid["n"], "n"), grid["m"], first.n_inputs)
+        start = lambda w: round((w - first.t0) / first.dt)  # noqa: E731 (t0 enters no program)
+        key = (first.n_samples, first.dt, first.n_inputs, first.intersample, first.offset,
+               max(s[0] for s in structs), tuple(sorted(stages.items())),
+               None if windows is None else tuple(start(x) for x in np.hstack(
+                   [np.ravel(w) for f, h in windows[0] for w in (*f, h)]
+                   + [np.ravel(windows[1])])))
+        if key in _REHEARSED:
+            return
+        _REHEARSED.add(key)
         res = _stand_in(first, structs, float(grid_values(grid["h"], "h")[0]))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -210,7 +218,6 @@ def _rehearsal(records: list, grid: dict, stages: dict, windows=None):
                         len(res)), res, folds, est)], rehearsal=True, **stages)
             except Exception:  # noqa: BLE001 (speculative: the real stages compile what it missed)
                 pass
-        _REHEARSED.add(key)
 
     return rehearse
 

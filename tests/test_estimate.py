@@ -77,6 +77,16 @@ def test_estimate_refuses_a_non_bool_polish(noisy):
         mfmjax.estimate(noisy[0], polish="yes", **GRID)
 
 
+@pytest.mark.parametrize("n, match", [
+    (("a",), r"estimate\(\): n\[0\] must be a number, got str 'a'; orders are whole"),
+    ((0, 1), r"estimate\(\): n\[0\] must be an integer >= 1 \(got n\[0\]=0\)")])
+def test_estimate_refuses_bad_orders_by_name(noisy, n, match):
+    """The hold-out path reads the orders before its search does (its default m is 0..max n
+    per input): a bad n is refused there, by name (it was a NumPy ufunc error)."""
+    with pytest.raises((TypeError, ValueError), match=match):
+        mfmjax.estimate(noisy[0], **dict(GRID, n=n))
+
+
 def test_cli_search_estimate(noisy, tmp_path, capsys):
     """`mfmjax search ... --estimate`: the same path from the command line, same model."""
     import json
