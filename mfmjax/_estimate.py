@@ -144,9 +144,10 @@ def estimate(
                   observer_window=None, eta=None, chunk_size=CHUNK_SETTINGS, simulate=True)
         check_search(first, progress=None, **kw)
         plan = plan_search(first, **kw)
-        results = overlapped(lambda: run_plan(plan, first, records=records), _rehearsal(
-            records, kw, dict(polish=bool(polish), max_iter=max_iter, tol=tol)))
-        outs = _from_search(records, results, polish=bool(polish), max_iter=max_iter, tol=tol)
+        stages = dict(polish=bool(polish), max_iter=max_iter, tol=tol)
+        results = overlapped(lambda: run_plan(plan, first, records=records),
+                             _rehearsal(records, kw, stages))
+        outs = _from_search(records, results, **stages)
     else:
         n_grid = _b.integers("estimate", "n", n, lo=1,
                              fix="orders are whole numbers, e.g. n=(1, 2, 3)")
@@ -159,8 +160,7 @@ def estimate(
                                   records, grid, stages, holdout_folds(first, identify,
                                                                        holdout, folds)),
                               **grid)
-        outs = _from_holdout(records, sels, holdout=holdout, polish=polish, max_iter=max_iter,
-                             tol=tol)
+        outs = _from_holdout(records, sels, **stages)
     outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes
                            + unstable_note(o.model)) for o, r in zip(outs, records)]
     for r, o in enumerate(outs):
