@@ -191,9 +191,35 @@ def output_error(
 
     if not isinstance(model, Model):
         raise TypeError("output_error(): model must be a Model")
-    residual, meta = _prepare(signals, model, window)
+    residual, meta = _prepare(signals, model, window, rehearse=(max_steps, rtol, atol))
     return _finish(residual, meta, _lm(residual, *_lm_arguments(residual.size, max_steps, rtol,
                                                                 atol)))
+
+
+_REHEARSED: set = set()  # residual layouts whose `_lm` program this process has compiled
+
+
+def _rehearsal(parts: tuple, n_max: int, bound: int, limits: tuple):
+    """On a residual layout's first call: a function that compiles `_lm` for it, a run of no
+    step from a stand-in residual (the start's parts, initial state 0 and its scale 1), while
+    the start observer runs on a second thread (`_prepare`): the two first compiles overlap.
+    None for a layout seen before."""
+    c, sig, yv, th0, sc, free, k0, length = parts
+    stand_in = (c, sig, yv, th0, sc, np.zeros(n_max), np.ones(n_max), free, k0, length)
+    key = (jax.tree.structure(stand_in), bound, tuple(
+        (np.shape(x), getattr(x, "dtype", type(x))) for x in jax.tree.leaves(stand_in)))
+    if key in _REHEARSED:
+        return None
+    _REHEARSED.add(key)
+
+    def rehearse():
+        try:
+            residual = _Residual(*jax.device_put(stand_in), bound)
+            _lm(residual, *_lm_arguments(residual.size, 0, *limits[1:]))
+        except Exception:  # noqa: BLE001 (speculative: the real call compiles what it missed)
+            pass
+
+    return rehearse
 
 
 def _lm_arguments(size: int, max_steps, rtol, atol):
@@ -203,13 +229,16 @@ def _lm_arguments(size: int, max_steps, rtol, atol):
                            np.asarray(atol, np.float64)))
 
 
-def _prepare(signals: Signals, model: Model, window, n_max: int | None = None):
+def _prepare(signals: Signals, model: Model, window, n_max: int | None = None,
+             rehearse: tuple | None = None):
     """The scaled residual of `output_error` at its start (the initial state from the
     observer, eq. 14) and what `_finish` needs. The model is zero-padded to order `n_max` with
     numerators of order n_max (every structure of that order: one program), or by default to
     its own n and largest m_k (no padded unknowns in the forward-mode Jacobian, whose cost
     grows with their count). Raises ValueError when the start's simulation overflows or its
-    state is unobservable on the window."""
+    state is unobservable on the window. `rehearse` (`output_error`'s limits): on a layout's
+    first call, `_lm` compiles while the observer runs (`_rehearsal`)."""
+    from ._batch import overlapped
     from ._observers import checked, validation_window
 
     if model.n_inputs != signals.n_inputs:
@@ -227,20 +256,23 @@ def _prepare(signals: Signals, model: Model, window, n_max: int | None = None):
     pad = record_bucket(max(signals.n_samples, k0 + bound)) - signals.n_samples
     sig = replace_fields(signals.unlabelled(), **{  # host glue in NumPy: no eager programs
         key: edge_padded(np.asarray(getattr(signals, key)), pad) for key in ("y", "u")})
-    # the zero-padded observer: one program for every structure of this padded shape
-    obs = checked(padded.observe_candidate(sig, c, np.int32(k0), bound, np.int32(length),
-                                           np.int32(length)), "output_error")
     yv = sig.y[k0 : k0 + bound]
     yw = yv[:length]
     names, theta0 = free_parameters(model)
     idx = padded.indices(model, n_max, m_max + 1)
     p = n_max + model.n_inputs * (m_max + 1) + int(model.has_offset)
     scale = np.maximum(np.abs(theta0), 1e-8 * max(np.max(np.abs(theta0)), 1e-300))
-    x_init = np.asarray(obs.x_initial)  # zero beyond n
-    x_scale = np.maximum(np.abs(x_init[: model.n]), 1e-6 * float(np.std(yw)) + 1e-300)
     free = np.concatenate([padded.free(c, model.has_offset), np.arange(n_max) < model.n])
     th0, sc, xs = np.zeros(p), np.ones(p), np.ones(n_max)
-    th0[idx], sc[idx], xs[: model.n] = theta0, scale, x_scale
+    th0[idx], sc[idx] = theta0, scale
+    # the zero-padded observer: one program for every structure of this padded shape
+    obs = checked(overlapped(lambda: padded.observe_candidate(
+        sig, c, np.int32(k0), bound, np.int32(length), np.int32(length)), None if rehearse is None
+        else _rehearsal((c, sig, yv, th0, sc, free, np.int32(k0), np.int32(length)), n_max,
+                        bound, rehearse)), "output_error")
+    x_init = np.asarray(obs.x_initial)  # zero beyond n
+    x_scale = np.maximum(np.abs(x_init[: model.n]), 1e-6 * float(np.std(yw)) + 1e-300)
+    xs[: model.n] = x_scale
     residual = _Residual(*jax.device_put((c, sig, yv, th0, sc, x_init, xs, free, np.int32(k0),
                                           np.int32(length))), bound)
     return residual, (original, model, was_unstable, names, theta0, scale, x_scale,

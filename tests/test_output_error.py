@@ -148,16 +148,36 @@ def test_structures_of_one_padded_order_share_one_program(noisy):
         np.testing.assert_allclose(got.std_errors, want.std_errors, rtol=1e-5)
 
 
-def test_first_call_compiles_the_observer_and_the_solver_only():
+def test_first_call_compiles_the_observer_and_the_solver_only(monkeypatch):
     """A first `output_error` (a record length no other test uses) compiles two programs: the
     padded start observer and the Levenberg-Marquardt loop, which returns the residual and
     Jacobian at the start and at its point, so the covariance needs no program of its own
-    (before: four, with a residual and a Jacobian program)."""
+    (before: four, with a residual and a Jacobian program). The loop compiles while the
+    observer runs on a second thread (`_output_error._rehearsal`: a run of no step from a
+    stand-in residual), so the real solve compiles nothing; a second call rehearses nothing
+    and gives the same fit bitwise."""
     from jaxlog import compiles
+
+    from mfmjax import _output_error
 
     sig = simulated_experiment(TRUE, dt=0.05, n_samples=731, seed=5, noise_std=0.01)
     start = Model.from_coefficients([2.2, 2.8, 1.0], [[0.9]], intersample=["zoh"])
+    calls, real_lm = [], _output_error._lm
+
+    def lm(residual, z0, max_steps, *limits):  # the compiles during each solver call
+        before = len(names)
+        out = real_lm(residual, z0, max_steps, *limits)
+        calls.append((int(max_steps), names[before:]))
+        return out
+
+    monkeypatch.setattr(_output_error, "_lm", lm)
     with compiles() as names:
         fit = mfmjax.output_error(sig, start)
     assert sorted(names) == ["jit(_lm)", "jit(observe_candidate)"], names
+    assert [c[0] for c in calls] == [0, 100]  # the rehearsal, then the real solve
+    assert "jit(_lm)" in calls[0][1] and calls[1][1] == [], calls
     assert fit.converged and np.all(np.isfinite(fit.std_errors)) and fit.E < fit.E_start
+    again = mfmjax.output_error(sig, start)
+    assert [c[0] for c in calls] == [0, 100, 100]
+    np.testing.assert_array_equal(again.theta, fit.theta)
+    np.testing.assert_array_equal(again.covariance, fit.covariance)
