@@ -176,22 +176,20 @@ _REHEARSED: set = set()  # stage layouts whose programs this process has compile
 
 
 def _rehearsal(records: list, grid: dict, stages: dict, windows=None):
-    """On a stage layout's first call for one record (record length, rules, largest order,
-    stage settings; `windows`: the hold-out path's (folds, estimation windows) from
-    `holdout_folds`, None for `selection="bic"`): a function that runs the stages after the
-    search (`_from_holdout`, or `_from_search`) on the record from a stand-in search result,
-    one stable candidate per structure of the grid, its results discarded. The search runs
-    on a second thread meanwhile (`overlapped`), so the stages' programs (the hold-out
-    observer, SRIVC, output error) compile on the other core while its chunks compile: the
-    same calls on the same layout, hence the programs the real stages then find compiled.
-    Nothing is rehearsed for a layout seen before or several estimation windows (no
-    stages), and for a batch (None), whose stages run in chunks of records that one record's
-    rehearsal would not compile, while their run time, not the compiles, dominates its call.
+    """On a stage layout's first call (record length, rules, largest order, stage settings;
+    `windows`: the hold-out path's (folds, estimation windows) from `holdout_folds`, None for
+    `selection="bic"`): a function that runs the stages after the search (`_from_holdout`, or
+    `_from_search`) on the first record from a stand-in search result, one stable candidate
+    per structure of the grid, its results discarded. The search runs on a second thread
+    meanwhile (`overlapped`), so the stages' programs (the hold-out observer, SRIVC, output
+    error) compile on the other core while its chunks compile: the same calls on the same
+    layout, hence the programs the real stages then find compiled. A batch shares one
+    record's programs (its candidates go through the per-fold stages in chunks of 8 pairs,
+    remainders singly); its chunks of records in the last stage compile after the search.
+    Nothing is rehearsed for a layout seen before or several estimation windows (no stages).
     The grid is read only when the function runs, after the search has checked it (a bad
     grid gets the search's error)."""
     first = records[0]
-    if len(records) > 1:
-        return None
 
     def rehearse():  # called once the search has checked the grid
         if windows is not None and len(windows[1]) > 1:
