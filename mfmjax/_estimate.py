@@ -187,24 +187,28 @@ def _rehearsal(records: list, grid: dict, stages: dict, windows=None):
     record's programs (its candidates go through the per-fold stages in chunks of 8 pairs,
     remainders singly); its chunks of records in the last stage compile after the search.
     Nothing is rehearsed for a layout seen before or several estimation windows (no stages).
-    The grid is read only when the function runs, after the search has checked it (a bad
-    grid gets the search's error)."""
+    None as well for a grid the search will refuse (its own error then says why), so a
+    warm call runs its search on the calling thread."""
     first = records[0]
-
-    def rehearse():  # called once the search has checked the grid
-        if windows is not None and len(windows[1]) > 1:
-            return
+    if windows is not None and len(windows[1]) > 1:
+        return None
+    try:  # a grid the search will refuse: nothing to rehearse, the search says why
         structs = structures(grid_values(grid["n"], "n"), grid["m"], first.n_inputs)
-        start = lambda w: round((w - first.t0) / first.dt)  # noqa: E731 (t0 enters no program)
-        key = (first.n_samples, first.dt, first.n_inputs, first.intersample, first.offset,
-               max(s[0] for s in structs), tuple(sorted(stages.items())),
-               None if windows is None else tuple(start(x) for x in np.hstack(
-                   [np.ravel(w) for f, h in windows[0] for w in (*f, h)]
-                   + [np.ravel(windows[1])])))
-        if key in _REHEARSED:
-            return
+        h = float(grid_values(grid["h"], "h")[0])
+        n_max = max(s[0] for s in structs)
+    except Exception:  # noqa: BLE001
+        return None
+    start = lambda w: round((w - first.t0) / first.dt)  # noqa: E731 (t0 enters no program)
+    key = (first.n_samples, first.dt, first.n_inputs, first.intersample, first.offset, n_max,
+           tuple(sorted(stages.items())), None if windows is None else tuple(
+               start(x) for x in np.hstack([np.ravel(w) for fit, hold in windows[0]
+                                            for w in (*fit, hold)] + [np.ravel(windows[1])])))
+    if key in _REHEARSED:
+        return None  # a warm call: the search runs on this thread
+
+    def rehearse():
         _REHEARSED.add(key)
-        res = _stand_in(first, structs, float(grid_values(grid["h"], "h")[0]))
+        res = _stand_in(first, structs, h)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
