@@ -14,6 +14,7 @@ import numpy as np
 
 from ._jit import jit
 from ._pytree import replace_fields
+from ._quadrature import edge_padded, record_bucket
 from ._signals import Signals
 
 
@@ -78,18 +79,33 @@ def groups(trees) -> list[tuple[object, list[int]]]:
 
 
 @jit
-def _mapped(fn, kw, sig, ys, us, models):
+def _mapped(fn, kw, sig, ys, us, lengths, models):
     def one(args):
-        y, u, model = args
-        return fn(eqx.tree_at(lambda s: (s.y, s.u), sig, (y, u)), model, **kw)
+        y, u, n_samples, model = args
+        return fn(eqx.tree_at(lambda s: (s.y, s.u), sig, (y, u)), model, n_samples=n_samples,
+                  **kw)
 
-    return jax.lax.map(one, (ys, us, models))
+    return jax.lax.map(one, (ys, us, lengths, models))
+
+
+def padded_record(signals: Signals) -> Signals:
+    """`signals` padded to its `record_bucket` by repeating its last sample (NumPy: no
+    program); a record already of a bucket's length is returned as it is."""
+    T = signals.n_samples
+    pad = record_bucket(T) - T
+    if pad == 0:
+        return signals
+    return replace_fields(signals, **{key: edge_padded(np.asarray(getattr(signals, key)), pad)
+                                      for key in ("y", "u")})
 
 
 def map_pairs(fn, records, models, *, device: bool = True, **kw) -> list:
     """`fn(records[i], models[i], **kw)` for every pair: each chunk of `BATCH` pairs of one
     pytree structure and shape in one compiled call, a single pair by `fn` itself (the program
-    a direct call uses). `records`: `Signals` of one layout; `kw` are static (hashable). The
+    a direct call uses). `records`: `Signals` of one layout, each padded to its
+    `record_bucket` (`padded_record`), `fn` told the record's own length as `n_samples=` (an
+    int32 value), so records of every length in a bucket share the programs. `kw` are
+    static (hashable) or values (NumPy scalars, e.g. a window start). The
     models' labels and modulating functions are dropped (`fn` does not use them); other
     pytrees (e.g. the search's padded candidates) pass as they are. An entry is None where
     `fn` raised ValueError (e.g. an overflowing simulation in eager mode).
@@ -98,14 +114,18 @@ def map_pairs(fn, records, models, *, device: bool = True, **kw) -> list:
     models = [replace_fields(m.unlabelled(), mf=None) if hasattr(m, "unlabelled") else m
               for m in models]
     out = [None] * len(models)
+    lengths = [np.int32(r.n_samples) for r in records]
+    records = [padded_record(r) for r in records]
 
     def run(idx):
         try:
             if len(idx) == 1:
-                one = fn(records[idx[0]], models[idx[0]], **kw)
-                return [(idx[0], one if device else jax.device_get(one))]
+                i = idx[0]
+                one = fn(records[i], models[i], n_samples=lengths[i], **kw)
+                return [(i, one if device else jax.device_get(one))]
             sig = records[idx[0]].unlabelled()
-            res = _mapped(fn, kw, sig, *stack([(records[i].y, records[i].u) for i in idx]),
+            res = _mapped(fn, kw, sig, *stack([(records[i].y, records[i].u, lengths[i])
+                                               for i in idx]),
                           stack([models[i] for i in idx]))
             return list(zip(idx, unstack(res, device)))
         except ValueError:

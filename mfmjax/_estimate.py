@@ -29,6 +29,7 @@ from ._output_error import (
 )
 from ._padded import observe_candidate, padded_model
 from ._pytree import replace_fields
+from ._quadrature import edge_padded, record_bucket
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import CHUNK_SETTINGS, grid_values, structures
 from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
@@ -259,7 +260,9 @@ def _reason(est: Estimate) -> str:
     return est.srivc.describe() if est.srivc is not None else "no stage ran"
 
 
-def _observed(signals: Signals, candidate: dict, **kw):
+def _observed(signals: Signals, candidate: dict, n_samples=None, **kw):
+    """The hold-out observer (`observe_candidate`) of a padded candidate; `n_samples` (the
+    record's own length, `map_pairs`) is not needed: the window lies inside the record."""
     return observe_candidate(signals.unlabelled(), candidate, **kw)
 
 
@@ -312,20 +315,30 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
     # 11.0 ms per record on Table 3 model 1, but a record choosing a new structure compiled
     # for about 1.3 s)
 
+    T = records[0].n_samples
+
     def hold_scores(pairs):
         """(mean hold-out E over the folds, mean fit %) of each (record, models per fold)."""
         E = np.zeros((len(pairs), len(folds)))
         fit = np.zeros_like(E)
         for f, (_, hold, ob, y_hold) in enumerate(folds):
             start, length, ob = validation_window(records[0], hold, ob, n_max, "estimate")
-            obs = map_pairs(_observed, [records[r] for r, _ in pairs],
-                            [padded_model(ms[f], n_max) for _, ms in pairs], device=False,
-                            start=np.int32(start), length=length, ob_length=ob)
+            # the window padded to its record bucket (only its own samples count) and the
+            # records by that bucket beyond their own, so that every window fits: records of
+            # every length in a bucket share the observer's program
+            bound = record_bucket(length)
+            pad = record_bucket(T) + bound - T
+            padded = [replace_fields(records[r], **{k: edge_padded(np.asarray(getattr(
+                records[r], k)), pad) for k in ("y", "u")}) for r, _ in pairs]
+            obs = map_pairs(_observed, padded, [padded_model(ms[f], n_max) for _, ms in pairs],
+                            device=False, start=np.int32(start), length=bound,
+                            ob_length=np.int32(ob), valid=np.int32(length))
             for k, ((r, _), o) in enumerate(zip(pairs, obs)):
                 if o is None or int(o.status) & (Status.OVERFLOW | Status.UNOBSERVABLE):
                     E[k, f], fit[k, f] = np.inf, np.nan  # not usable on the hold-out
                 else:
-                    E[k, f], fit[k, f] = float(o.E), float(fit_percent(y_hold[r], o.y_sim))
+                    E[k, f], fit[k, f] = float(o.E), float(fit_percent(y_hold[r],
+                                                                       o.y_sim[:length]))
         return [(float(np.mean(e)), float(np.mean(q))) if np.all(np.isfinite(e))
                 else (np.inf, np.nan) for e, q in zip(E, fit)]
 

@@ -321,16 +321,19 @@ def _program(modes, has_offset):
     return array_jit(fn)
 
 
-def padded_fit(signals: Signals, c: dict, *, max_iter: int, tol: float) -> dict:
+def padded_fit(signals: Signals, c: dict, *, max_iter: int, tol: float,
+               n_samples=None) -> dict:
     """The padded outputs of SRIVC from the padded start `c` (`padded_model`) on `signals`
     (checked by the caller): one program for every structure of `c`'s padded order. A
     concrete record is padded to its `record_bucket` (repeating the last sample; only its own
-    samples count), so records of every length in a bucket share the program."""
+    samples count), so records of every length in a bucket share the program; `n_samples`:
+    the record's own length when `signals` come padded (`_batch.map_pairs`)."""
     y, u, T = signals.y, signals.u, signals.y.shape[-1]
-    if not (_b.is_traced(y) or _b.is_traced(u)):
+    if n_samples is None and not (_b.is_traced(y) or _b.is_traced(u)):
         y, u = (edge_padded(np.asarray(x), record_bucket(T) - T) for x in (y, u))
+    valid = np.int32(T) if n_samples is None else n_samples
     return _program(tuple(signals.intersample), signals.offset)(
-        c, y, u, np.int32(T), max_iter, tol, signals.dt)
+        c, y, u, valid, max_iter, tol, signals.dt)
 
 
 def _fit(signals: Signals, model: Model, out: dict, shape: tuple[int, int]) -> SrivcFit:

@@ -166,6 +166,27 @@ def test_estimate_batch_compiles_nothing_for_new_realisations(batch_20db):
     assert all(e.converged for e in again)
 
 
+def test_estimate_batch_compiles_nothing_for_another_record_length(batch_20db):
+    """Records of another length in the same record bucket (1450 samples after 1500: the
+    hold-out blocks and fit parts shorter too, inside their own buckets) reuse every program:
+    the hold-out observer's window and the records given to the SRIVC and observer chunks are
+    padded to their buckets, only their own samples counting (before, 4 programs compiled
+    again). The estimates equal the unpadded computation's: the chosen stage and structure
+    are those of the 1500-sample batch, and `test_estimate_batch_equals_one_record_at_a_time`
+    compares a batch with the single-record path."""
+    from jaxlog import compiles
+
+    _, ests, _ = batch_20db
+    records = [r.window(0.0, 1449 * DT) for r in _realisations(20.0, range(60, 69))]
+    assert records[0].n_samples == 1450
+    with compiles() as names:
+        again = mfmjax.estimate(records, **SMALL)
+    assert {(e.model.n, e.method) for e in again} == {(e.model.n, e.method) for e in ests}
+    assert names == [], names
+    one = mfmjax.estimate(records[3], **SMALL)  # in a chunk of 8 above, alone here
+    np.testing.assert_allclose(_params(again[3].model), _params(one.model), rtol=1e-7)
+
+
 def test_estimate_batch_compiles_nothing_for_other_structures(batch_20db):
     """No program is compiled per model structure: a batch of another system (first order,
     the same record layout) chooses n = 1 where the first batch chose n = 2, and compiles
