@@ -244,6 +244,10 @@ def _prepare(signals: Signals, model: Model, window, n_max: int | None = None,
     if model.n_inputs != signals.n_inputs:
         raise ValueError(f"output_error(): the model has {model.n_inputs} inputs but the signals "
                          f"have {signals.n_inputs}; pass the inputs the model was identified with")
+    if model.has_offset != signals.offset:  # else the offset would fit a b coefficient's slot
+        raise ValueError(f"output_error(): model.has_offset={model.has_offset} but signals.offset="
+                         f"{signals.offset}; identify the start on these signals, or give "
+                         f"Signals(..., offset={model.has_offset})")
     original = model
     model, was_unstable = stabilised(model)
     k0, length = validation_window(signals, window, None, model.n, "output_error", "window")[:2]
@@ -303,6 +307,9 @@ def _finish(residual, meta, solved) -> OutputErrorFit:
     sigma2 = float(np.sum(r**2)) / dof
     cov = sigma2 * np.linalg.pinv(Jp.T @ Jp)
     new = _fitted(model, theta)  # theta: the start's own parameters when not `ok`
+    # fitted with the signals' intersample rules: the model carries them (as SRIVC's), so
+    # `observe` and `simulate` reproduce the fit's E
+    new = replace_fields(new, intersample=tuple(residual.signals.intersample))
     converged = ok and code == "successful"
     if not converged:
         warnings.warn(f"output_error(): not converged ({code} after {int(n_steps)} steps); the "

@@ -14,6 +14,7 @@ import numpy as np
 from ._boundary import require_x64
 from ._model import Model
 from ._modulating import ModulatingFunction
+from ._pytree import replace_fields
 from ._status import Status
 
 FORMAT = "mfmjax-model"
@@ -135,6 +136,8 @@ def load_model(path) -> Model:
         )
         if doc.get("h") is not None:
             model = _with_mf(model, doc)
+        else:  # a model without MF settings (output error, SRIVC, estimate) keeps its status
+            model = replace_fields(model, status=np.int32(_status(doc.get("status"))))
     except KeyError as err:
         raise ValueError(f"load_model(): {path} is missing or has a bad field: it has no field {err}") from None
     except (TypeError, ValueError) as err:

@@ -224,6 +224,12 @@ def test_persistence_roundtrip(tmp_path):
                for x, y in zip(back.b, model.b))
     assert back.intersample == ("foh", "zoh") and float(back.delays[1]) == 0.013
     assert float(back.mf.h) == 2.0 and back.to_dict()["N"] == 4
+    # a model without MF settings (output error, SRIVC, estimate) keeps its status too: an
+    # unstable one used to come back as status ok
+    unstable = mfmjax.Model.from_coefficients([-0.5, 1.0, 1.0], [[1.0]])
+    unstable = mfmjax._pytree.replace_fields(unstable, status=np.int32(mfmjax.Status.UNSTABLE))
+    mfmjax.save_model(unstable, path)
+    assert int(mfmjax.load_model(path).status) == int(mfmjax.Status.UNSTABLE)
 
 
 def test_padded_candidate_observer_equals_observe_for_every_order():

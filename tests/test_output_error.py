@@ -181,3 +181,34 @@ def test_first_call_compiles_the_observer_and_the_solver_only(monkeypatch):
     assert [c[0] for c in calls] == [0, 100, 100]
     np.testing.assert_array_equal(again.theta, fit.theta)
     np.testing.assert_array_equal(again.covariance, fit.covariance)
+
+
+def test_refuses_a_start_whose_offset_flag_differs_from_the_signals(noisy):
+    """A model without an offset term on `Signals(offset=True)` used to fit the offset into a
+    b coefficient's slot and report convergence (and, the other way round, never fit the
+    offset): both are refused by name, as `srivc` refuses them."""
+    with_offset = mfmjax.Signals(noisy.y, noisy.u, dt=noisy.dt, intersample=["zoh"], offset=True)
+    with pytest.raises(ValueError, match=r"model.has_offset=False but signals.offset=True"):
+        mfmjax.output_error(with_offset, TRUE)
+    start = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]], offset=0.1, intersample=["zoh"])
+    without = mfmjax.Signals(noisy.y, noisy.u, dt=noisy.dt, intersample=["zoh"], offset=False)
+    with pytest.raises(ValueError, match=r"model.has_offset=True but signals.offset=False"):
+        mfmjax.output_error(without, start)
+
+
+def test_fitted_model_carries_the_signals_intersample_rules(noisy):
+    """Output error simulates with the signals' intersample rules; the returned model used to
+    keep the start's, so `observe` (which uses the model's) disagreed with the fit's own E.
+    Started from the zoh truth on data declared foh, the fit's model says foh and `observe`
+    reproduces its E within 1 %: the two E differ only by the quadrature of eq. 17 (the
+    output's cubic rule against the fit's sum of squares times dt: end corrections of a few
+    samples in 800, about 0.5 %) and by the initial state (the observer's least-squares x0
+    against the fitted one: it can only lower E). The start's zoh label gave 19 % more."""
+    from mfmjax._pytree import replace_fields
+
+    sig = mfmjax.Signals(noisy.y, noisy.u, dt=noisy.dt, intersample=["foh"], offset=False)
+    fit = mfmjax.output_error(sig, TRUE)
+    assert fit.model.intersample == ("foh",)
+    assert abs(float(mfmjax.observe(fit.model, sig).E) - fit.E) <= 0.01 * fit.E
+    mislabelled = replace_fields(fit.model, intersample=("zoh",))
+    assert float(mfmjax.observe(mislabelled, sig).E) > 1.1 * fit.E  # the check can fail
