@@ -409,8 +409,17 @@ def check_cramer_rao(model, u, x0, dt, sigma, length) -> None:
         raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}")
     if not is_traced(u):
         u = array(fn, "u", u, ndim=(1, 2))
+    K = model.n_inputs
+    shape = np.shape(u)
+    if (shape[1] if len(shape) == 2 else 1) != K or shape[0] < 1:
+        raise ValueError(
+            f"{fn}(): u must have shape (T, {K}) for this model (time-major, one column per "
+            f"input), got {shape}" + ("; transpose it (u.T)" if shape[0] == K else ""))
     if not is_traced(x0):
         array(fn, "x0", x0, ndim=1)
+    if np.shape(x0) != (model.n,):
+        raise ValueError(f"{fn}(): x0 must have shape ({model.n},) (the model's state), got "
+                         f"{np.shape(x0)}")
     number(fn, "dt", dt, lo=0, lo_open=True)
     number(fn, "sigma", sigma, lo=0, lo_open=True, hi=1e150,
            fix="give the output noise's standard deviation")

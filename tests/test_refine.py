@@ -152,6 +152,33 @@ def test_cramer_rao_against_numpy_finite_differences():
     np.testing.assert_allclose(crb, ref, rtol=1e-5)  # FD truncation ~1e-12, lsim ~1e-9
 
 
+def test_cramer_rao_undetermined_parameters_are_infinite_and_shapes_checked():
+    """An experiment that cannot determine a parameter gives it an infinite bound (the
+    pseudo-inverse used to give 0, read as "perfectly determined"): with u = 0 the numerator
+    coefficients have zero sensitivity; the free response from x0 != 0 still fixes a_0, a_1,
+    whose bounds stay finite and equal those of the Fisher matrix restricted to (a, x0) (from
+    central differences of scipy's lsim, 1e-5 relative as above). A u or x0 of the wrong
+    shape is refused by name (JAX clamped the missing column and used u for both inputs)."""
+    model = mfmjax.Model.from_coefficients([0.5, 1.5, 1.0], [[0.5, 0.2]], intersample=("zoh",))
+    x0 = np.array([0.2, -0.1])
+    names, crb = mfmjax.cramer_rao(model, np.zeros((400, 1)), x0, dt=0.1, sigma=0.05)
+    assert names == ("a_0", "a_1", "b_10", "b_11")
+    assert np.all(np.isinf(crb[2:])) and np.all(np.isfinite(crb[:2]))
+
+    def sim(v):
+        return R.lsim([v[0], v[1], 1.0], [[0.5, 0.2]], np.zeros((400, 1)), 0.1, ("zoh",), v[2:])
+
+    base = np.array([0.5, 1.5, *x0])
+    J = np.stack([(sim(base + e) - sim(base - e)) / 2e-6 for e in np.eye(4) * 1e-6], 1)
+    ref = np.sqrt(np.diag(0.05**2 * np.linalg.inv(J.T @ J)))[:2]
+    np.testing.assert_allclose(crb[:2], ref, rtol=1e-5)  # FD truncation as above
+    two = mfmjax.Model.from_coefficients([0.5, 1.5, 1.0], [[0.5], [0.3]])
+    with pytest.raises(ValueError, match=r"u must have shape \(T, 2\)"):
+        mfmjax.cramer_rao(two, np.ones(400), x0, dt=0.1, sigma=0.05)
+    with pytest.raises(ValueError, match=r"x0 must have shape \(2,\)"):
+        mfmjax.cramer_rao(model, np.ones((400, 1)), [0.2, -0.1, 0.0], dt=0.1, sigma=0.05)
+
+
 @pytest.mark.parametrize("snr_db, tol", [(None, 0.5), (20.0, 2.0)])
 def test_delay_estimation_262_4(snr_db, tol):
     true = mfmjax.Model.from_coefficients([0.002, 0.09, 1.0], [[0.004]], delays=[262.4],
