@@ -154,6 +154,12 @@ def _validation_report(args, sig, model) -> dict | None:
     w = _record_window(args.validate_window, "validate-window", sig)
     ident = _identify_part(args, sig)
     overlap = ident is None or (w[0] < ident[1] and ident[0] < w[1])
+    from ._observers import MIN_WINDOW
+
+    if round(0.2 * (w[1] - w[0]) / sig.dt) + 1 < MIN_WINDOW:  # the observer's 20 %
+        raise ValueError(f"--validate-window {w[0]:g},{w[1]:g} is too short: its first 20 % (the "
+                         f"initial-state observer) needs at least {MIN_WINDOW} samples; widen it "
+                         f"to at least {5 * (MIN_WINDOW - 1) * sig.dt:g}")
     obs = mfmjax.observe(model, sig, w, observer_window=0.2 * (w[1] - w[0]))
     a = round((w[0] - sig.t0) / sig.dt)
     y = np.asarray(sig.y)[a: a + obs.y_sim.shape[0]]

@@ -167,11 +167,14 @@ class Signals(eqx.Module):
                     "sort the record or drop duplicate rows"
                 )
             dt = float((t[-1] - t[0]) / (T - 1))
-            if np.max(np.abs(steps - dt)) > _UNIFORM_RTOL * dt:
+            # jitter beyond the time stamps' own rounding (epoch seconds near 1.7e9 carry
+            # 2.4e-7 s of it, above 1e-6 of a 0.1 s step)
+            rounding = 4 * np.finfo(np.float64).eps * float(np.max(np.abs(t)))
+            if np.max(np.abs(steps - dt)) > max(_UNIFORM_RTOL * dt, rounding):
                 bad = int(np.argmax(np.abs(steps - dt))) + 1
                 raise ValueError(
                     f"Signals(): time is not uniformly sampled (step at row {bad} is "
-                    f"{steps[bad - 1]:g}, mean step {dt:g}); resample to a uniform grid"
+                    f"{steps[bad - 1]:.10g}, mean step {dt:.10g}); resample to a uniform grid"
                 )
             t0 = float(t[0])
         if dt is None:
@@ -448,18 +451,30 @@ def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
             row = split(line)
             if len(row) != len(header):
                 raise ValueError(
-                    f"{path}: line {lineno} has {len(row)} fields but there are {len(header)} "
-                    "columns; all columns must have equal length"
+                    f"{path}: line {lineno} has {len(row)} fields but "
+                    + (f"{len(header)} names were given (--names)" if names is not None
+                       else f"the header has {len(header)} columns")
+                    + "; every row needs one field per column"
                 )
             try:
                 rows.append([float(c) if c else math.nan for c in row])
             except ValueError:
+                j, cell = next((j, c) for j, c in enumerate(row) if c and not _is_number(c))
                 raise ValueError(
-                    f"{path}: line {lineno} has a non-numeric value"
-                    + ("" if names is not None else " (a file without header needs --names)")
+                    f"{path}: line {lineno} has a non-numeric value {cell[:20]!r} in column "
+                    f"{header[j]!r}; every row after the header must hold numbers (remove "
+                    "unit or comment rows, write the decimal point as '.')"
                 ) from None
         data = np.asarray(rows, dtype=np.float64)
     return {name: data[:, j] for j, name in enumerate(header)}
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
 
 
 def _first_line(text: str):

@@ -91,6 +91,9 @@ def _one_line_error(capsys, code, argv, match):
         ("validate", "--window", "nan,nan", "--window: nan is not a finite number"),
         ("validate", "--window", "4", "--window: expected T0,T1 (two numbers), got '4'"),
         ("validate", "--window", "x", "--window: expected comma-separated numbers"),
+        # its observer's 20 %: 2 samples (the message used to name observer_window, which the
+        # CLI user never gave)
+        ("identify", "--validate-window", "10,10.05", "--validate-window 10,10.05 is too short"),
     ],
 )
 def test_option_errors_are_one_line_exit_2(files, capsys, command, option, value, match):
@@ -409,7 +412,12 @@ def test_csv_fast_paths_equal_careful_path(tmp_path, fast_path, monkeypatch):
     [
         ("a,b\n1,2\n3\n", "line 3 has 1 fields", None),  # pandas would pad with NaN
         ("a,b\n1,2\n3,4,5\n", "line 3 has 3 fields", None),
-        ("a,b\n1,2\n3,x\n", "line 3 has a non-numeric value", None),
+        ("a,b\n1,2\n3,x\n", "line 3 has a non-numeric value 'x' in column 'b'", None),
+        # a units row under the header, a decimal comma: named, with the fix (the message
+        # used to ask for --names, as if the file had no header)
+        ("a,b\ns,degC\n1,2\n", "line 2 has a non-numeric value 's' in column 'a'; every "
+                                 "row after the header must hold numbers", None),
+        ('a,b\n"1,5",2\n', "non-numeric value '1,5' in column 'a'", None),
         ("a,b\n1,2\n\n  \n3,\n", None, [[1, 3], [2, np.nan]]),  # blank lines, empty cell
         ('a,b\n"1",2\n3,4\n', None, [[1, 3], [2, 4]]),  # quoted numbers
         ("a,b\r\n1, 2\r\n3 ,4\r\n", None, [[1, 3], [2, 4]]),

@@ -87,6 +87,26 @@ def test_bad_csv(tmp_path, text, match):
         Signals.from_csv(_write(tmp_path, text), output="a", inputs=["b"], dt=1.0)
 
 
+def test_names_of_another_count_than_the_fields_are_named(tmp_path):
+    p = _write(tmp_path, "1,2,3\n4,5,6\n")
+    with pytest.raises(ValueError, match=r"line 1 has 3 fields but 2 names were given"):
+        Signals.from_csv(p, output="a", inputs=["b"], dt=1.0, names=["a", "b"])
+
+
+def test_epoch_time_column_is_uniform_to_its_rounding():
+    """Time stamps in epoch seconds (1.7e9 + k 0.1) carry 2.4e-7 s of rounding, above 1e-6 of
+    the 0.1 s step: they are uniform to their own precision and accepted (they were refused as
+    "not uniformly sampled", with both steps printed as 0.1); a real jitter of 1e-3 s is not."""
+    y, u = _ok()
+    t = 1.7e9 + 0.1 * np.arange(y.size)
+    s = Signals.from_columns({"t": t, "y": y, "u": u[:, 0]}, output="y", inputs=["u"], time="t")
+    # dt from the end stamps, each rounded by half a unit in the last place
+    assert abs(s.dt - 0.1) <= np.spacing(t[-1]) / (y.size - 1) and s.t0 == t[0]
+    t[20] += 1e-3
+    with pytest.raises(ValueError, match=r"not uniformly sampled \(step at row 2[01] is 0\.(1009|0989)"):
+        Signals.from_columns({"t": t, "y": y, "u": u[:, 0]}, output="y", inputs=["u"], time="t")
+
+
 def test_missing_cell_is_reported_as_nan(tmp_path):
     p = _write(tmp_path, "a,b\n1,2\n3,\n4,5\n")
     with pytest.raises(ValueError, match="'b' has a NaN or inf sample at row 1"):
