@@ -32,6 +32,7 @@ from ._signals import INTERSAMPLE, Signals
 DETREND_KINDS = ("linear", "constant")
 OUTPUT_RULES = ("linear", "cubic")
 _GRID_RTOL = 1e-9  # a grid time within 1e-9 dt of a sample time counts as that sample time
+_GAP = 10.0  # a step longer than this many median steps (and grid steps) is a logging gap
 _COARSE = 1.5  # dt above this many median steps of a record: warn about aliasing
 
 
@@ -303,6 +304,15 @@ def resample_arrays(fn: str, t, y, u, *, dt, intersample="foh", output_rule: str
                 "faster content aliases without a low-pass filter: filter first or choose a "
                 "smaller dt", stacklevel=3)
             break
+    for name, t_k in [("y", t)] + [(s[0], s[1]) for s in series]:
+        gaps = np.diff(t_k)
+        big = int(np.argmax(gaps))
+        if gaps[big] > _GAP * max(float(np.median(gaps)), dt):
+            warnings.warn(
+                f"{fn}(): {name!r} has a gap from {t_k[big]:g} to {t_k[big + 1]:g} "
+                f"({gaps[big]:g}, {gaps[big] / np.median(gaps):.3g} of its median steps): it is "
+                "interpolated across, which no plant did; split the record there and join the "
+                "parts with Signals.concatenate", stacklevel=3)
     grid = start + dt * np.arange(steps + 1, dtype=np.float64)
     y_new = _interp(t, y, grid, "cubic" if output_rule == "cubic" else "foh", dt)
     u_new = np.zeros((grid.shape[0], K), dtype=np.float64)

@@ -60,19 +60,26 @@ def _refuse_output_as_input(y, u, output_name, names):
 def offset_needed(y) -> tuple[bool, str]:
     """The default offset rule: (include the constant input?, the reason in words).
 
-    On when the output sits at an operating point away from zero: |mean y| > 2 std y and the
-    mean of its first samples (up to 10) is farther from zero than half the output's range, so
-    that a record starting at rest at zero (a step or impulse response) keeps the plain model.
-    A traced y (inside jit/vmap) cannot be inspected: the term is left off; pass offset=True."""
+    On when the output sits at an operating point away from zero: |mean y| > 2 std y, unless
+    the record starts at rest at zero (the mean of its first samples, up to 10, within 10 % of
+    the output's range of zero: a step or impulse response), which keeps the plain model. A
+    step test from an ambient level (20 degC rising to 110) is not at rest at zero: on (the
+    start used to be compared with half the range, so it was left off, and the a_0 and gain
+    came out wrong with status ok). A traced y (inside jit/vmap) cannot be inspected: the
+    term is left off; pass offset=True."""
     if not _concrete(y):
         return False, "offset term off (traced data: pass offset=True to estimate one)"
     y = np.asarray(y)
     mean, std, span = float(np.mean(y)), float(np.std(y)), float(np.ptp(y))
     start = float(np.mean(y[: min(10, y.shape[0])]))
-    if abs(mean) > 2 * std and abs(start) > 0.5 * span:
-        return True, (f"offset term estimated (auto: the output sits at {mean:.4g}, "
-                      f"{abs(mean) / max(std, 1e-300):.3g} standard deviations from zero)")
-    return False, "no offset term (auto: the output is near zero or starts at rest at zero)"
+    if abs(mean) <= 2 * std:
+        return False, ("no offset term (auto: the output's mean is within 2 standard deviations "
+                       "of zero)")
+    if abs(start) <= 0.1 * span:
+        return False, (f"no offset term (auto: the output starts at rest at zero, at {start:.4g} "
+                       f"against a range of {span:.4g}: a step or impulse response)")
+    return True, (f"offset term estimated (auto: the output sits at {mean:.4g}, "
+                  f"{abs(mean) / max(std, 1e-300):.3g} standard deviations from zero)")
 
 
 class Signals(eqx.Module):
@@ -90,7 +97,8 @@ class Signals(eqx.Module):
     - `offset`: add a constant input (u = 1, m = 0) to the model, for signals with an offset.
       Default `None` decides from the data (`offset_needed`): on for plant data around an
       operating point away from zero (the output's mean is more than 2 standard deviations
-      from zero and the record does not start at rest at zero), off for records from rest or
+      from zero and the record does not start at rest at zero, i.e. its first samples are
+      farther from zero than 10 % of its range), off for records from rest or
       around zero; `offset_note` says what was decided and why. Give True/False to choose.
     - `smooth`: per input, use the higher-order (cubic) rule as for the output.
     - `output_rule`: quadrature rule of the output, `"cubic"` (default, O(dt^4)) or `"foh"`

@@ -9,6 +9,7 @@ reproduces exactly (a line for linear interpolation, a cubic for the not-a-knot 
 """
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -225,6 +226,20 @@ def test_resample_coarse_grid_warns_about_aliasing():
     with pytest.warns(UserWarning, match=r"dt=0.2 is coarser than the median step of 'y' \(0.05\)"):
         sig = mfmjax.resample(t, np.sin(t), dt=0.2)
     assert sig.n_samples == 51
+
+
+def test_resample_warns_about_a_logging_gap():
+    """A logger gap (rows from 4 to 6 s missing in a 0.05 s record) is interpolated across by
+    `resample`, which no plant did: it warns and points to splitting the record (it filled the
+    gap silently). Steps within 10 median steps (jitter, irregular logging) do not warn."""
+    t = np.linspace(0.0, 10.0, 201)
+    jitter = t + 0.01 * np.sin(7 * t)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mfmjax.resample(jitter, np.sin(jitter), dt=0.05)
+    keep = (t < 4.0) | (t > 6.0)
+    with pytest.warns(UserWarning, match=r"'y' has a gap from 3.95 to 6.05 .*Signals.concatenate"):
+        mfmjax.resample(t[keep], np.sin(t[keep]), dt=0.05)
 
 
 # -- CSV and CLI -----------------------------------------------------------------------------------

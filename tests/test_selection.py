@@ -110,6 +110,19 @@ def test_offset_default_handles_plant_data():
     assert got["fit"] == forced["fit"] and got["fit"] > without["fit"] + 10
     rest = _record(5)
     assert not rest.offset and "no offset term" in rest.offset_note
+    # a step test from an ambient level is not at rest at zero: the offset term is on and
+    # identify recovers the plant (noise-free y'' + 0.8 y' + y = 60 u, ambient 20: the
+    # quadrature's O(dt^4) and the record's end leave 1e-5 relative); the start used to be
+    # compared with half the range, so the term was off and a_0, b came out 25 % and 60 % off
+    t = 0.1 * np.arange(1000)
+    step = (t >= 10.0) + 0.5 * (t >= 60.0)
+    true = mfmjax.Model.from_coefficients([1.0, 0.8, 1.0], [[60.0]], intersample=["zoh"])
+    ambient = 20.0 + np.asarray(mfmjax.simulate(true, step[:, None], dt=0.1))
+    sig = Signals(ambient, step[:, None], dt=0.1, intersample=["zoh"])
+    assert sig.offset and "offset term estimated" in sig.offset_note
+    model = mfmjax.identify(sig, mfmjax.Structure(2, [0]), mfmjax.ModulatingFunction(4, 4, 5.0))
+    np.testing.assert_allclose([*np.asarray(model.a)[:2], float(model.b[0][0]),
+                                float(model.offset)], [1.0, 0.8, 60.0, 20.0], rtol=1e-5)
     assert Signals(y, u, dt=1.0, offset=False).offset_note == ""  # the user chose
 
 
