@@ -417,6 +417,10 @@ def _checked(signals: Signals, model: Model, max_iter, tol):
         raise TypeError(f"srivc(): model must be a Model (e.g. from identify), got "
                         f"{type(model).__name__}")
     K = signals.u.shape[-1]
+    if K == 0:
+        raise ValueError("srivc(): the signals have no input; SRIVC's instruments are the "
+                         "filtered inputs, so a model without inputs (an autonomous response) "
+                         "is fitted by output_error instead")
     if model.n_inputs != K:
         raise ValueError(f"srivc(): the model has {model.n_inputs} inputs but the signals have "
                          f"K={K}; start from a model identified on these signals")

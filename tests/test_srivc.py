@@ -316,3 +316,13 @@ def test_many_structures_share_one_program():
         np.testing.assert_allclose(np.asarray(f.std_errors), np.asarray(d.std_errors),
                                    rtol=1e-8)
 
+
+
+def test_srivc_refuses_signals_without_inputs():
+    """An autonomous record (K = 0) has no input to instrument: refused by name with the
+    alternative (it raised an internal TypeError)."""
+    y = np.exp(-0.2 * np.arange(400) * 0.05) * np.cos(np.arange(400) * 0.05)
+    sig = Signals(y, dt=0.05, offset=False)
+    start = mfmjax.Model.from_coefficients([2.5, 0.3, 1.0])
+    with pytest.raises(ValueError, match=r"srivc\(\): the signals have no input.*output_error"):
+        mfmjax.srivc(sig, start)
