@@ -88,11 +88,11 @@ def _mapped(fn, kw, sig, ys, us, lengths, models):
     return jax.lax.map(one, (ys, us, lengths, models))
 
 
-def padded_record(signals: Signals) -> Signals:
-    """`signals` padded to its `record_bucket` by repeating its last sample (NumPy: no
-    program); a record already of a bucket's length is returned as it is."""
+def padded_record(signals: Signals, to: int | None = None) -> Signals:
+    """`signals` padded to `to` samples (default its `record_bucket`) by repeating its last
+    sample (NumPy: no program); a record already that long is returned as it is."""
     T = signals.n_samples
-    pad = record_bucket(T) - T
+    pad = (record_bucket(T) if to is None else to) - T
     if pad == 0:
         return signals
     return replace_fields(signals, **{key: edge_padded(np.asarray(getattr(signals, key)), pad)

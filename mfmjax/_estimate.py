@@ -16,7 +16,7 @@ import equinox as eqx
 import numpy as np
 
 from . import _boundary as _b
-from ._batch import as_records, map_pairs, overlapped
+from ._batch import as_records, map_pairs, overlapped, padded_record
 from ._boundary import check_search
 from ._model import Model, is_stable
 from ._observers import fit_percent, validation_window
@@ -29,7 +29,7 @@ from ._output_error import (
 )
 from ._padded import observe_candidate, padded_model
 from ._pytree import replace_fields
-from ._quadrature import edge_padded, record_bucket
+from ._quadrature import record_bucket
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import CHUNK_SETTINGS, grid_values, structures
 from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
@@ -327,10 +327,9 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
             # records by that bucket beyond their own, so that every window fits: records of
             # every length in a bucket share the observer's program
             bound = record_bucket(length)
-            pad = record_bucket(T) + bound - T
-            padded = [replace_fields(records[r], **{k: edge_padded(np.asarray(getattr(
-                records[r], k)), pad) for k in ("y", "u")}) for r, _ in pairs]
-            obs = map_pairs(_observed, padded, [padded_model(ms[f], n_max) for _, ms in pairs],
+            padded = {r: padded_record(records[r], record_bucket(T) + bound) for r, _ in pairs}
+            obs = map_pairs(_observed, [padded[r] for r, _ in pairs],
+                            [padded_model(ms[f], n_max) for _, ms in pairs],
                             device=False, start=np.int32(start), length=bound,
                             ob_length=np.int32(ob), valid=np.int32(length))
             for k, ((r, _), o) in enumerate(zip(pairs, obs)):
