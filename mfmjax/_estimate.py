@@ -33,7 +33,7 @@ from ._quadrature import record_bucket
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import CHUNK_SETTINGS, grid_values, structures
 from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
-from ._signals import Signals
+from ._signals import Signals, dependent_inputs
 from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc, srivc_many
 from ._status import Status, describe
 
@@ -164,6 +164,17 @@ def estimate(
         outs = _from_holdout(records, sels, **stages)
     outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes
                            + unstable_note(o.model)) for o, r in zip(outs, records)]
+    for r, (o, rec) in enumerate(zip(outs, records)):
+        dependent = dependent_inputs(rec)
+        if dependent:  # the gains and their standard errors are meaningless
+            which = "" if single else f" (record {r})"
+            text = (f"the inputs {list(dependent)} are linearly dependent (one is a multiple "
+                    "of the others): their gains and standard errors are meaningless; drop all "
+                    "but one of them")
+            status = np.int32(int(o.model.status) | Status.ILL_CONDITIONED)
+            outs[r] = replace_fields(o, model=replace_fields(o.model, status=status),
+                                     notes=o.notes + (text,))
+            warnings.warn(f"estimate(){which}: {text}", stacklevel=2)
     for r, o in enumerate(outs):
         if not o.converged:
             which = "" if single else f" (record {r})"

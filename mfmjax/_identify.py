@@ -20,9 +20,9 @@ from ._jit import jit
 from ._linalg import hurwitz
 from ._model import Model
 from ._modulating import ModulatingFunction, as_values
-from ._pytree import build
+from ._pytree import build, replace_fields
 from ._quadrature import edge_padded, record_bucket
-from ._signals import Signals
+from ._signals import Signals, dependent_inputs
 from ._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
 from ._status import Status, describe
 from ._structure import Structure
@@ -188,6 +188,13 @@ def identify(
     padded, end = bucketed(signals)
     model = identify_model(padded, structure, as_values(mf), eta, length, end,
                            (signals.output_name, signals.input_names), flag_unstable=True)
+    dependent = dependent_inputs(signals)
+    if dependent and _concrete(model.status) and model.status.ndim == 0:
+        model = replace_fields(model, status=np.int32(int(model.status)
+                                                      | Status.ILL_CONDITIONED))
+        warnings.warn(f"identify(): the inputs {list(dependent)} are linearly dependent (one "
+                      "is a multiple of the others): their gains cannot be told apart; drop "
+                      "all but one of them", stacklevel=2)
     if _concrete(model.status) and model.status.ndim == 0 and int(model.status) != 0:
         warnings.warn(
             f"identify(): status {describe(int(model.status))} (n={structure.n}, "

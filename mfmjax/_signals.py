@@ -40,6 +40,38 @@ def _per_input(value, K: int, name: str, default, cast):
 DEGENERATE_CORR = 1.0 - 1e-12  # |corr(y, u_k)| above this: u_k is the output up to scale
 
 
+DEPENDENT_RTOL = 1e-8  # smallest / largest singular value of the unit input columns below it
+
+
+def dependent_inputs(signals) -> tuple[str, ...]:
+    """Names of inputs that are linearly dependent (u2 = 2 u1, one signal logged twice): no
+    method can split the gain among them, and the Gram's conditioning test misses it under
+    output noise (noise fills the eigenvalue it reads). Checked among inputs of equal delay
+    and intersample rule (only those are the same continuous signal up to a factor), their
+    columns centred when the offset term is on (u2 = 2 u1 + c), constant inputs left to
+    `NO_EXCITATION`; dependent when the smallest singular value of the unit-norm columns is
+    below `DEPENDENT_RTOL` of the largest. Empty for traced data."""
+    u = signals.u
+    if not _concrete(u) or u.shape[-1] < 2 or u.ndim != 2:
+        return ()
+    u = np.asarray(u, dtype=np.float64)
+    if signals.offset:
+        u = u - np.mean(u, axis=0)
+    norms = np.linalg.norm(u, axis=0)
+    groups: dict = {}
+    for k, rule in enumerate(signals.intersample):
+        if norms[k] > 0:
+            groups.setdefault((float(np.asarray(signals.delays)[k]), rule), []).append(k)
+    out = []
+    for ks in groups.values():
+        if len(ks) < 2:
+            continue
+        _, sv, vt = np.linalg.svd(u[:, ks] / norms[ks], full_matrices=False)
+        if sv[-1] <= DEPENDENT_RTOL * sv[0]:
+            out += [signals.input_names[k] for k, c in zip(ks, vt[-1]) if abs(c) > 1e-6]
+    return tuple(out)
+
+
 def _refuse_output_as_input(y, u, output_name, names):
     """An input that is the output itself (up to an affine map: |corr| > 1 - 1e-12) makes every
     model degenerate (y = u explains the data with any denominator): refuse it."""

@@ -387,3 +387,21 @@ def test_estimate_keeps_srivc_when_the_rescue_does_not_converge(noisy, monkeypat
     assert est.method == "srivc" and not est.converged and est.output_error is None
     assert any("output error did not converge either" in note for note in est.notes)
     assert "NOT CONVERGED" in est.summary()
+
+
+def test_estimate_says_when_its_inputs_are_linearly_dependent():
+    """u2 = 2 u1: `estimate` returned b = 1e12 with standard errors of 44, status ok and
+    "converged". It now warns, says so in its notes and flags the model ILL_CONDITIONED."""
+    from mfmjax._status import Status
+
+    t = 0.1 * np.arange(1000)
+    u = np.sign(np.sin(0.3 * t)) + 0.5 * np.sign(np.sin(0.11 * t))
+    true = Model.from_coefficients([1.0, 0.8, 1.0], [[2.0]], intersample=["zoh"])
+    y = np.asarray(mfmjax.simulate(true, u[:, None], dt=0.1))
+    y = y + 0.01 * np.random.default_rng(2).standard_normal(y.shape)
+    sig = mfmjax.Signals(y, np.c_[u, 2 * u], dt=0.1, intersample="zoh", offset=False)
+    with pytest.warns(UserWarning, match=r"inputs \['u1', 'u2'\] are linearly dependent"):
+        est = mfmjax.estimate(sig, h=(5.0,), n=(2,), N=(4,), M=(4,), m=[(0,), (0,)])
+    assert int(est.model.status) & Status.ILL_CONDITIONED
+    assert any("linearly dependent" in note for note in est.notes)
+    assert "linearly dependent" in est.summary()

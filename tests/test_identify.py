@@ -227,3 +227,34 @@ def test_unstable_estimate_is_flagged_eager_jit_and_vmap():
         assert int(eager.status) == want
         assert int(jax.jit(f)(2.0).status) == want
         assert np.asarray(jax.vmap(f)(jnp.asarray([1.5, 2.0])).status).tolist() == [want] * 2
+
+
+def test_linearly_dependent_inputs_are_flagged_and_named():
+    """One signal logged twice in other units (u2 = 2 u1): no method can split the gain, and
+    under output noise the Gram's conditioning test missed it (noise fills the eigenvalue it
+    reads), so `identify` returned b = 7e10 / -4e10 with status ok. The inputs themselves are
+    checked now: status ILL_CONDITIONED and a warning naming them. Inputs that differ (other
+    rule, other delay, or independent) are not flagged: `dependent_inputs` is empty."""
+    from mfmjax._signals import dependent_inputs
+    from mfmjax._status import Status
+
+    true = mfmjax.Model.from_coefficients([1.0, 0.8, 1.0], [[2.0]], intersample=["zoh"])
+    t = 0.1 * np.arange(1000)
+    u = np.sign(np.sin(0.3 * t)) + 0.5 * np.sign(np.sin(0.11 * t))
+    y = np.asarray(mfmjax.simulate(true, u[:, None], dt=0.1))
+    y = y + 0.01 * np.random.default_rng(1).standard_normal(y.shape)
+    sig = Signals(y, np.c_[u, 2 * u], dt=0.1, intersample="zoh", offset=False)
+    assert dependent_inputs(sig) == ("u1", "u2")
+    with pytest.warns(UserWarning, match=r"inputs \['u1', 'u2'\] are linearly dependent"):
+        model = mfmjax.identify(sig, Structure(2, [0, 0]), ModulatingFunction(4, 4, 5.0))
+    assert int(model.status) & Status.ILL_CONDITIONED
+    other = np.sign(np.sin(0.17 * t + 1.0))
+    for u2, rules, delays in ((2 * u, ("zoh", "foh"), None), (2 * u, "zoh", [0.0, 0.3]),
+                              (other, "zoh", None)):
+        assert dependent_inputs(Signals(y, np.c_[u, u2], dt=0.1, intersample=rules,
+                                        delays=delays, offset=False)) == ()
+    # u2 = 2 u1 + 3: dependent on the constant input the offset term adds, not without it
+    shifted = np.c_[u, 2 * u + 3.0]
+    assert dependent_inputs(Signals(y, shifted, dt=0.1, intersample="zoh", offset=True)) \
+        == ("u1", "u2")
+    assert dependent_inputs(Signals(y, shifted, dt=0.1, intersample="zoh", offset=False)) == ()
