@@ -40,7 +40,7 @@ def _per_input(value, K: int, name: str, default, cast):
 DEGENERATE_CORR = 1.0 - 1e-12  # |corr(y, u_k)| above this: u_k is the output up to scale
 
 
-DEPENDENT_RTOL = 1e-8  # smallest / largest singular value of the unit input columns below it
+DEPENDENT_RTOL = 1e-6  # smallest / largest singular value of the unit input columns below it
 
 
 def dependent_inputs(signals) -> tuple[str, ...]:
@@ -50,25 +50,28 @@ def dependent_inputs(signals) -> tuple[str, ...]:
     and intersample rule (only those are the same continuous signal up to a factor), their
     columns centred when the offset term is on (u2 = 2 u1 + c), constant inputs left to
     `NO_EXCITATION`; dependent when the smallest singular value of the unit-norm columns is
-    below `DEPENDENT_RTOL` of the largest. Empty for traced data."""
+    below `DEPENDENT_RTOL` of the largest (from their K x K Gram, whose eigenvalues resolve
+    ratios down to 1e-12, the square of that). Empty for traced data."""
     u = signals.u
-    if not _concrete(u) or u.shape[-1] < 2 or u.ndim != 2:
+    if not _concrete(u) or u.ndim != 2 or u.shape[-1] < 2:
         return ()
     u = np.asarray(u, dtype=np.float64)
     if signals.offset:
         u = u - np.mean(u, axis=0)
-    norms = np.linalg.norm(u, axis=0)
+    C = u.T @ u
+    norms = np.sqrt(np.diagonal(C))
+    delays = np.asarray(signals.delays, dtype=np.float64).reshape(-1)
     groups: dict = {}
     for k, rule in enumerate(signals.intersample):
         if norms[k] > 0:
-            groups.setdefault((float(np.asarray(signals.delays)[k]), rule), []).append(k)
+            groups.setdefault((float(delays[k]), rule), []).append(k)
     out = []
     for ks in groups.values():
         if len(ks) < 2:
             continue
-        _, sv, vt = np.linalg.svd(u[:, ks] / norms[ks], full_matrices=False)
-        if sv[-1] <= DEPENDENT_RTOL * sv[0]:
-            out += [signals.input_names[k] for k, c in zip(ks, vt[-1]) if abs(c) > 1e-6]
+        w, v = np.linalg.eigh(C[np.ix_(ks, ks)] / np.outer(norms[ks], norms[ks]))
+        if w[0] <= DEPENDENT_RTOL**2 * w[-1]:
+            out += [signals.input_names[k] for k, c in zip(ks, v[:, 0]) if abs(c) > 1e-3]
     return tuple(out)
 
 
