@@ -9,7 +9,8 @@ import numpy as np
 from ._jit import jit
 from ._linalg import small_matmul
 from ._model import Model
-from ._output_error import free_parameters, order_parameters, with_parameters
+from ._output_error import (free_parameters, gauss_newton_covariance, order_parameters,
+                            with_parameters)
 from ._simulate import forced_response
 
 
@@ -34,22 +35,7 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
     v = np.concatenate([theta, np.asarray(x0, dtype=np.float64)])
     J = np.asarray(_sensitivities(base, u, v, float(dt), int(length)))
     J = J[:, np.concatenate([live, theta.size + np.arange(model.n)])]
-    return names, np.sqrt(bound_variances(J, sigma))[: theta0.size]
-
-
-def bound_variances(J, sigma: float) -> np.ndarray:
-    r"""diag($\sigma^2 (J^T J)^{-1}$) through the SVD of J with unit-norm columns; a parameter
-    the experiment cannot determine (a zero column, or a component above 1e-8 in J's numerical
-    null space: singular values below numpy's `matrix_rank` tolerance, max(s) max(T, p) eps)
-    gets inf, where a pseudo-inverse gave 0, i.e. "perfectly determined"."""
-    scale = np.linalg.norm(J, axis=0)
-    dead = ~(scale > 0)
-    _, s, Vt = np.linalg.svd(J / np.where(dead, 1.0, scale), full_matrices=False)
-    keep = s > (s.max() if s.size else 0.0) * max(J.shape) * np.finfo(np.float64).eps
-    V = Vt.T
-    var = sigma**2 * np.sum((V[:, keep] / s[keep]) ** 2, axis=1) / np.where(dead, 1.0, scale) ** 2
-    undetermined = dead | (np.max(np.abs(V[:, ~keep]), axis=1, initial=0.0) > 1e-8)
-    return np.where(undetermined, np.inf, var)
+    return names, np.sqrt(np.diag(gauss_newton_covariance(J, sigma**2)))[: theta0.size]
 
 
 @jit

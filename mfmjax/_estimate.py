@@ -581,7 +581,12 @@ def _shifted_back(out, ybar, ubar):
     for name, val in [("a_0", ybar)] + [(f"b_{k + 1}0", -ubar[k]) for k in range(len(ubar))]:
         if name in out.names:
             J[row, out.names.index(name)] = val
-    cov = J @ np.asarray(out.covariance) @ J.T
+    cov = np.asarray(out.covariance)
+    lost = ~np.isfinite(np.diagonal(cov))  # undetermined (`gauss_newton_covariance`)
+    cov = J @ np.where(lost[:, None] | lost[None, :], 0.0, cov) @ J.T
+    lost = np.any(J[:, lost] != 0, axis=1)  # ... and every parameter mapped from them
+    cov[lost, :], cov[:, lost] = np.nan, np.nan
+    cov[lost, lost] = np.inf
     return replace_fields(out, model=back, covariance=cov,
                           std_errors=np.sqrt(np.abs(np.diagonal(cov))))
 

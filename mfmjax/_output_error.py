@@ -52,6 +52,10 @@ class OutputErrorFit(eqx.Module):
         for name, v, e in zip(self.names, self.theta, self.std_errors):
             lines.append(f"{name:<12}{v:>16.6e}{e:>14.3e}")
         lines.append(f"E: {self.E_start:.6e} (start) -> {self.E:.6e}")
+        lost = [n for n, e in zip(self.names, self.std_errors) if not np.isfinite(e)]
+        if lost:
+            lines.append(f"NOT DETERMINED by the data (infinite std error, the value is "
+                         f"arbitrary): {', '.join(lost)}")
         if self.stabilised:
             lines.append("start was unstable: its right-half-plane poles were mirrored first")
         lines.append(("converged" if self.converged else
@@ -283,6 +287,27 @@ def _prepare(signals: Signals, model: Model, window, n_max: int | None = None,
                       x_init[: model.n], idx)
 
 
+def gauss_newton_covariance(J, sigma2: float) -> np.ndarray:
+    r"""$\sigma^2 (J^T J)^{-1}$ through the SVD of J with unit-norm columns. A parameter the
+    data cannot determine (a zero column, or a component above 1e-8 in J's numerical null
+    space: singular values below numpy's `matrix_rank` tolerance, max(s) max(T, p) eps) gets
+    an infinite variance and NaN covariances, where a pseudo-inverse gave 0, i.e. "perfectly
+    determined"."""
+    J = np.asarray(J, dtype=np.float64)
+    scale = np.linalg.norm(J, axis=0)
+    dead = ~(scale > 0)
+    scale = np.where(dead, 1.0, scale)
+    _, s, Vt = np.linalg.svd(J / scale, full_matrices=False)
+    keep = s > (s.max() if s.size else 0.0) * max(J.shape) * np.finfo(np.float64).eps
+    W = Vt.T[:, keep] / s[keep] / scale[:, None]
+    cov = sigma2 * (W @ W.T)
+    undetermined = dead | (np.max(np.abs(Vt.T[:, ~keep]), axis=1, initial=0.0) > 1e-8)
+    cov[undetermined, :] = np.nan
+    cov[:, undetermined] = np.nan
+    cov[undetermined, undetermined] = np.inf
+    return cov
+
+
 def _finish(residual, meta, solved) -> OutputErrorFit:
     """`OutputErrorFit` from the solver's point (`_lm`'s outputs, with the residual and its
     Jacobian at the start and at that point): kept if usable and no worse than the start, the
@@ -305,12 +330,17 @@ def _finish(residual, meta, solved) -> OutputErrorFit:
     Jp = J[:, live] / np.concatenate([scale, x_scale])[None, :]
     dof = max(length - Jp.shape[1], 1)
     sigma2 = float(np.sum(r**2)) / dof
-    cov = sigma2 * np.linalg.pinv(Jp.T @ Jp)
+    cov = gauss_newton_covariance(Jp, sigma2)
     new = _fitted(model, theta)  # theta: the start's own parameters when not `ok`
     # fitted with the signals' intersample rules: the model carries them (as SRIVC's), so
     # `observe` and `simulate` reproduce the fit's E
     new = replace_fields(new, intersample=tuple(residual.signals.intersample))
     converged = ok and code == "successful"
+    lost = [n for n, v in zip(names, np.diag(cov)[:p_theta]) if not np.isfinite(v)]
+    if lost:
+        warnings.warn(f"output_error(): the data do not determine {', '.join(lost)} (infinite "
+                      "std error, the value is arbitrary): use an input that excites them or "
+                      "a model without them", stacklevel=3)
     if not converged:
         warnings.warn(f"output_error(): not converged ({code} after {int(n_steps)} steps); the "
                       f"result is {'the best iterate' if ok else 'the start'}: raise max_steps or "

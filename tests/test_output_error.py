@@ -212,3 +212,35 @@ def test_fitted_model_carries_the_signals_intersample_rules(noisy):
     assert abs(float(mfmjax.observe(fit.model, sig).E) - fit.E) <= 0.01 * fit.E
     mislabelled = replace_fields(fit.model, intersample=("zoh",))
     assert float(mfmjax.observe(mislabelled, sig).E) > 1.1 * fit.E  # the check can fail
+
+
+def test_undetermined_parameters_get_infinite_std_errors_and_a_warning():
+    """With u = 0 the numerator has zero sensitivity: its std errors are inf and its
+    covariances NaN (a pseudo-inverse gave 0, read as "perfectly determined"); the summary
+    and a warning name them. The determined block is sigma2_hat (J^T J)^-1 of (a, x0) at the
+    fit, sigma2_hat = RSS / (T - 6), J by central differences of scipy's lsim (step 1e-6:
+    truncation ~1e-12, lsim ~1e-9, so 1e-5 relative as in the Cramer-Rao test)."""
+    import reference as R
+
+    start = Model.from_coefficients([0.5, 1.5, 1.0], [[0.5, 0.2]], intersample=("zoh",))
+    u, x0 = np.zeros((400, 1)), np.array([0.2, -0.1])
+    y = R.lsim([0.5, 1.5, 1.0], [[0.5, 0.2]], u, 0.1, ("zoh",), x0)
+    y = y + 1e-3 * np.random.default_rng(0).standard_normal(400)
+    sig = mfmjax.Signals(y, u, dt=0.1, intersample=("zoh",))
+    with pytest.warns(UserWarning, match=r"do not determine b_10, b_11 \(infinite"):
+        fit = mfmjax.output_error(sig, start)
+    assert fit.converged
+    assert np.all(np.isinf(fit.std_errors[2:])) and np.all(np.isfinite(fit.std_errors[:2]))
+    assert np.all(np.isnan(fit.covariance[:2, 2:])) and np.all(np.isnan(fit.covariance[2, 3]))
+    assert "NOT DETERMINED by the data (infinite std error, the value is arbitrary): b_10, " \
+           "b_11" in fit.summary()
+
+    def sim(v):
+        return R.lsim([v[0], v[1], 1.0], [[0.5, 0.2]], u, 0.1, ("zoh",), v[2:])
+
+    v = np.concatenate([fit.theta[:2], np.asarray(fit.x0)])
+    r = y - sim(v)
+    np.testing.assert_allclose(fit.sigma2, np.sum(r**2) / (400 - 6), rtol=1e-5)
+    J = np.stack([(sim(v + e) - sim(v - e)) / 2e-6 for e in np.eye(4) * 1e-6], 1)
+    ref = fit.sigma2 * np.linalg.inv(J.T @ J)[:2, :2]
+    np.testing.assert_allclose(fit.covariance[:2, :2], ref, rtol=1e-5)
