@@ -619,6 +619,8 @@ def _cmd_search(args):
         kwargs["validate"] = _window(args.validate, "validate")
     if args.estimate and args.refine:
         raise _UserError("--estimate and --refine are two ways to improve the winner; give one")
+    if args.holdout is not None and not args.estimate:
+        raise _UserError("--holdout is the share held back by --estimate; add --estimate")
     report = None
     ident = _identify_part(args, sig)
     if args.estimate:  # mfmjax.estimate's path: its search table, ranked on held-back data
@@ -626,7 +628,8 @@ def _cmd_search(args):
         kwargs.pop("validate", None)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            est = mfmjax.estimate(sig, identify=ident, **kwargs)
+            est = mfmjax.estimate(sig, identify=ident, **kwargs, **(
+                {} if args.holdout is None else {"holdout": args.holdout}))
         result = est.search
         report = {"model": est.model, "method": est.method, "converged": est.converged,
                   "srivc_status": est.srivc.describe() if est.srivc is not None else "not run",
@@ -809,6 +812,9 @@ def main(argv=None) -> int:
                    "by gradient, then its parameters by output error")
     p.add_argument("--estimate", action="store_true", help="mfmjax.estimate's path: structure "
                    "chosen on held-back data, SRIVC (and output error), standard errors")
+    p.add_argument("--holdout", type=_number("holdout", lo=0, lo_open=True),
+                   help="with --estimate: the share of the estimation data held back "
+                   "(0.05 to 0.5, default 1/3)")
     _add_window_args(p)
     p.set_defaults(func=_cmd_search)
     p = sub.add_parser("validate", help="E, fit %% and observed x0 of a saved model on a record")

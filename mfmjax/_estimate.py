@@ -49,7 +49,7 @@ class Estimate(eqx.Module):
     names: tuple  # free parameters, ordered as std_errors
     std_errors: np.ndarray
     covariance: np.ndarray  # of the free parameters, ordered as names (the last stage's)
-    converged: bool  # the returned stage met its tolerance
+    converged: bool  # the returned stage met its tolerance and its model is not flagged
     stabilised: bool  # the MFM winner had right-half-plane poles, mirrored before SRIVC
     method: str  # "mfm", "srivc", "srivc + output error" or "output error"
     selection: str  # how the structure was chosen, in words
@@ -68,7 +68,9 @@ class Estimate(eqx.Module):
         lines += list(self.notes)
         if self.stabilised:
             lines.append("the MFM winner was unstable: its right-half-plane poles were mirrored")
-        lines.append("converged" if self.converged else
+        flags = int(self.model.status) & FLAGGED
+        lines.append(f"NOT USABLE: the model is flagged ({describe(flags)})" if flags else
+                     "converged" if self.converged else
                      "NOT CONVERGED: the estimate is the best iterate; its standard errors are "
                      "not trustworthy" + (f" (SRIVC: {self.srivc.describe()})"
                                           if self.srivc is not None else ""))
@@ -76,6 +78,10 @@ class Estimate(eqx.Module):
 
 
 SELECTIONS = ("holdout", "bic")
+# status bits that make the returned model unusable (unstable and ill-conditioned models are
+# returned with their own notes)
+FLAGGED = (Status.NONFINITE | Status.NO_EXCITATION | Status.A_N_ZERO | Status.UNOBSERVABLE
+           | Status.OVERFLOW | Status.OUT_OF_BOUNDS)
 POLISH_GAIN = 0.05  # a stage must lower the hold-out E by 5 % to replace a more robust one
 
 
@@ -176,6 +182,15 @@ def estimate(
                                      notes=o.notes + (text,))
             warnings.warn(f"estimate(){which}: {text}", stacklevel=2)
     for r, o in enumerate(outs):
+        flags = int(o.model.status) & FLAGGED
+        if flags:  # every candidate was flagged, or the stage's model is: not a usable answer
+            which = "" if single else f" (record {r})"
+            text = (f"the returned model is flagged ({describe(flags)}): it is not a usable "
+                    "model of these data; check the data (a level that swamps the variation: "
+                    "subtract it; a constant input: drop it) and the grid")
+            outs[r] = replace_fields(o, converged=False, notes=o.notes + (text,))
+            warnings.warn(f"estimate(){which}: {text}", stacklevel=2)
+            continue
         if not o.converged:
             which = "" if single else f" (record {r})"
             warnings.warn(f"estimate(){which}: {o.method} did not converge ({_reason(o)}); the "

@@ -109,6 +109,18 @@ def test_cli_search_estimate(noisy, tmp_path, capsys):
     got = [est["parameters"][k]["value"] for k in ref.names]
     np.testing.assert_allclose(got, _params(ref.model), rtol=1e-12)  # the same computation
     assert main(args + ["--refine"]) == 2  # one way to improve the winner at a time
+    # --holdout is estimate(holdout=...): passed through, refused without --estimate or
+    # outside (0.05, 0.5] with one line naming it
+    assert main(args + ["--holdout", "0.3", "--json"]) == 0
+    est = json.loads(capsys.readouterr().out)["estimated"]
+    ref = mfmjax.estimate(sig, holdout=0.3, **GRID)
+    got = [est["parameters"][k]["value"] for k in ref.names]
+    np.testing.assert_allclose(got, _params(ref.model), rtol=1e-12)
+    capsys.readouterr()
+    assert main(args[:-1] + ["--holdout", "0.3"]) == 2
+    assert "--holdout is the share held back by --estimate" in capsys.readouterr().err
+    assert main(args + ["--holdout", "0.7"]) == 2
+    assert "holdout must be a share between 0.05 and 0.5" in capsys.readouterr().err
 
 
 def _realisations(snr_db, seeds, true=TRUE):
@@ -405,3 +417,16 @@ def test_estimate_says_when_its_inputs_are_linearly_dependent():
     assert int(est.model.status) & Status.ILL_CONDITIONED
     assert any("linearly dependent" in note for note in est.notes)
     assert "linearly dependent" in est.summary()
+
+
+def test_estimate_says_when_its_model_is_flagged():
+    """An output at 1e8 varying by 3e-3 (float64 resolves it: eps * 1e8 = 2e-8) swamps the
+    Gram (cond 4e14): every candidate came back no_excitation,a_n_zero and `estimate` returned
+    a = 0 saying "converged". It now warns, sets converged False and says NOT USABLE."""
+    clean = simulated_experiment(TRUE, dt=DT, n_samples=600, seed=7)
+    y = 3e-3 * np.asarray(clean.y) / np.ptp(np.asarray(clean.y)) + 1e8
+    sig = mfmjax.Signals(y, clean.u, dt=DT, intersample="zoh", offset=True)
+    with pytest.warns(UserWarning, match=r"the returned model is flagged \(.*a_n_zero"):
+        est = mfmjax.estimate(sig, h=2.0, n=(1,), N=3, M=3, m=[[0]])
+    assert not est.converged
+    assert "NOT USABLE: the model is flagged" in est.summary()
