@@ -9,8 +9,12 @@ import numpy as np
 from ._jit import jit
 from ._linalg import small_matmul
 from ._model import Model
-from ._output_error import (free_parameters, gauss_newton_covariance, order_parameters,
-                            with_parameters)
+from ._output_error import (
+    free_parameters,
+    gauss_newton_covariance,
+    order_parameters,
+    with_parameters,
+)
 from ._simulate import forced_response
 
 

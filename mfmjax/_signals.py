@@ -43,7 +43,7 @@ DEGENERATE_CORR = 1.0 - 1e-12  # |corr(y, u_k)| above this: u_k is the output up
 DEPENDENT_RTOL = 1e-6  # smallest / largest singular value of the unit input columns below it
 
 
-def dependent_inputs(signals) -> tuple[str, ...]:
+def dependent_inputs(signals, delays=None) -> tuple[str, ...]:
     """Names of inputs that are linearly dependent (u2 = 2 u1, one signal logged twice): no
     method can split the gain among them, and the Gram's conditioning test misses it under
     output noise (noise fills the eigenvalue it reads). Checked among inputs of equal delay
@@ -51,16 +51,47 @@ def dependent_inputs(signals) -> tuple[str, ...]:
     columns centred when the offset term is on (u2 = 2 u1 + c), constant inputs left to
     `NO_EXCITATION`; dependent when the smallest singular value of the unit-norm columns is
     below `DEPENDENT_RTOL` of the largest (from their K x K Gram, whose eigenvalues resolve
-    ratios down to 1e-12, the square of that). Empty for traced data."""
+    ratios down to 1e-12, the square of that). `delays` (K,) replaces the signals' own (a
+    search candidate's). Empty for traced data."""
+    gram = _input_gram(signals)
+    if gram is None:
+        return ()
+    return _dependent(signals, gram, signals.delays if delays is None else delays)
+
+
+def dependent_candidates(signals, delays) -> tuple[np.ndarray, tuple[str, ...]]:
+    """For search candidates with input delays `delays` (C, K): which of them have linearly
+    dependent inputs (`dependent_inputs` under their delays), and the inputs' names."""
+    delays = np.asarray(delays, dtype=np.float64).reshape(len(delays), -1)
+    gram = _input_gram(signals)
+    if gram is None or not len(delays):
+        return np.zeros(len(delays), bool), ()
+    if np.all(delays == delays[0]):  # no delay grid (np.unique on rows costs 0.1 ms)
+        rows, inverse = delays[:1], np.zeros(len(delays), int)
+    else:
+        rows, inverse = np.unique(delays, axis=0, return_inverse=True)
+    found = [_dependent(signals, gram, row) for row in rows]
+    names = tuple(k for k in signals.input_names if any(k in f for f in found))
+    return np.asarray([bool(f) for f in found])[inverse.reshape(-1)], names
+
+
+def _input_gram(signals):
+    """The inputs' K x K Gram (centred with the offset term) and column norms; None for
+    traced data or fewer than two inputs."""
     u = signals.u
     if not _concrete(u) or u.ndim != 2 or u.shape[-1] < 2:
-        return ()
+        return None
     u = np.asarray(u, dtype=np.float64)
     if signals.offset:
         u = u - np.mean(u, axis=0)
     C = u.T @ u
-    norms = np.sqrt(np.diagonal(C))
-    delays = np.asarray(signals.delays, dtype=np.float64).reshape(-1)
+    return C, np.sqrt(np.diagonal(C))
+
+
+def _dependent(signals, gram, delays) -> tuple[str, ...]:
+    """`dependent_inputs` from the inputs' Gram under `delays`."""
+    C, norms = gram
+    delays = np.asarray(delays, dtype=np.float64).reshape(-1)
     groups: dict = {}
     for k, rule in enumerate(signals.intersample):
         if norms[k] > 0:

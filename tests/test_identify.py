@@ -261,3 +261,26 @@ def test_linearly_dependent_inputs_are_flagged_and_named():
     assert dependent_inputs(Signals(y, shifted, dt=0.1, intersample="zoh", offset=True)) \
         == ("u1", "u2")
     assert dependent_inputs(Signals(y, shifted, dt=0.1, intersample="zoh", offset=False)) == ()
+
+
+def test_search_flags_candidates_whose_inputs_are_linearly_dependent():
+    """`search` checks the inputs under each candidate's delays as `identify` does: with u2 =
+    2 u1 the candidates at equal delays are flagged ILL_CONDITIONED (they ranked first with
+    status ok), the warning names the inputs and counts them, and a candidate whose delay
+    separates the inputs (u2 one second later) is not flagged and ranks first."""
+    from mfmjax._status import Status
+
+    true = mfmjax.Model.from_coefficients([1.0, 0.8, 1.0], [[2.0]], intersample=["zoh"])
+    t = 0.1 * np.arange(1000)
+    u = np.sign(np.sin(0.3 * t)) + 0.5 * np.sign(np.sin(0.11 * t))
+    y = np.asarray(mfmjax.simulate(true, u[:, None], dt=0.1))
+    y = y + 0.01 * np.random.default_rng(1).standard_normal(y.shape)
+    sig = Signals(y, np.c_[u, 2 * u], dt=0.1, intersample="zoh", offset=False)
+    with pytest.warns(UserWarning, match=r"inputs \['u1', 'u2'\] are linearly dependent .* "
+                      r"under the delays of 1 of 2 candidates"):
+        res = mfmjax.search(sig, h=5.0, n=2, N=4, M=4, m=[[0], [0]],
+                            delays=[[0.0], [0.0, 1.0]])
+    c = res.columns
+    flagged = (c["status"] & Status.ILL_CONDITIONED) != 0
+    assert flagged.tolist() == [bool(d[1] == 0.0) for d in c["delays"]]
+    assert res.row(0)["delays"] == [0.0, 1.0]

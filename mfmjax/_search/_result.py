@@ -11,7 +11,8 @@ import numpy as np
 
 from .._model import Model, finite_or_none, plain_number
 from .._modulating import ModulatingFunction
-from .._status import describe
+from .._signals import dependent_candidates
+from .._status import Status, describe
 from .._structure import Structure
 
 E_TIE_RTOL = 1e-12  # E values closer than this fraction of int y^2 rank by parameter count
@@ -175,6 +176,10 @@ def collect(cols, combos, structs, signals, static, score, t_compile, t_run, whe
     if score == "J":  # J below sqrt(p eps) is the float64 noise of theta' G theta
         tie = math.sqrt(cols["theta"].shape[1] * np.finfo(np.float64).eps)
     n_par = np.asarray([s[0] + sum(mk + 1 for mk in s[1]) for s in structs])[st]
+    # linearly dependent inputs (u2 = 2 u1): no candidate can split their gain, and the Gram's
+    # conditioning test misses it under output noise
+    dependent, _ = dependent_candidates(signals, cols["delays"])
+    cols["status"] = np.where(dependent, cols["status"] | Status.ILL_CONDITIONED, cols["status"])
     rank = ranking(key, n_par, cols["status"] != 0, tie)
     return SearchResult(
         columns=cols, rank=rank, score=score, n_max=static.n_max, m_max=static.m_max,

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 
-from .._signals import Signals
+from .._signals import Signals, dependent_candidates
 from ._engine import run_plan
 from ._grid import CHUNK_SETTINGS, plan_search
 from ._result import SearchResult
@@ -66,4 +67,11 @@ def search(
                  validate=validate, observer_window=observer_window, eta=eta,
                  chunk_size=chunk_size, simulate=simulate, identify=identify, split=True,
                  apart=True)
-    return run_plan(plan, signals, progress, once=True)
+    res = run_plan(plan, signals, progress, once=True)
+    rows, dependent = dependent_candidates(signals, res.columns["delays"])
+    if dependent:
+        warnings.warn(f"search(): the inputs {list(dependent)} are linearly dependent (one is a "
+                      f"multiple of the others) under the delays of {int(rows.sum())} of "
+                      f"{len(rows)} candidates: their gains are meaningless and they are "
+                      "flagged ill_conditioned; drop all but one of them", stacklevel=2)
+    return res
