@@ -99,11 +99,13 @@ def padded_record(signals: Signals, to: int | None = None) -> Signals:
                                       for key in ("y", "u")})
 
 
-def map_pairs(fn, records, models, *, device: bool = True, **kw) -> list:
+def map_pairs(fn, records, models, *, device: bool = True, bucket: int | None = None,
+              **kw) -> list:
     """`fn(records[i], models[i], **kw)` for every pair: each chunk of `BATCH` pairs of one
     pytree structure and shape in one compiled call, a single pair by `fn` itself (the program
     a direct call uses). `records`: `Signals` of one layout, each padded to its
-    `record_bucket` (`padded_record`), `fn` told the record's own length as `n_samples=` (an
+    `record_bucket` (`padded_record`; `bucket`: to that length, e.g. a fit part's
+    `window_bucket` in its record), `fn` told the record's own length as `n_samples=` (an
     int32 value), so records of every length in a bucket share the programs. `kw` are
     static (hashable) or values (NumPy scalars, e.g. a window start). The
     models' labels and modulating functions are dropped (`fn` does not use them); other
@@ -115,7 +117,7 @@ def map_pairs(fn, records, models, *, device: bool = True, **kw) -> list:
               for m in models]
     out = [None] * len(models)
     lengths = [np.int32(r.n_samples) for r in records]
-    records = [padded_record(r) for r in records]
+    records = [padded_record(r, bucket) for r in records]
 
     def run(idx):
         try:

@@ -16,7 +16,7 @@ import equinox as eqx
 import numpy as np
 
 from . import _boundary as _b
-from ._batch import as_records, map_pairs, overlapped, padded_record
+from ._batch import as_records, map_pairs, overlapped
 from ._boundary import check_search
 from ._model import Model, is_stable
 from ._observers import fit_percent, validation_window
@@ -29,7 +29,7 @@ from ._output_error import (
 )
 from ._padded import observe_candidate, padded_model
 from ._pytree import replace_fields
-from ._quadrature import record_bucket
+from ._quadrature import window_bucket
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import CHUNK_SETTINGS, grid_values, structures
 from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
@@ -329,6 +329,9 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
                                     "record)",)))
         return out
     est_sigs = [rec.window(*sel0.estimation[0]) for rec in records]
+    # the estimation data padded to its `window_bucket` in the record (an identify window)
+    T = records[0].n_samples
+    est_bucket = window_bucket(est_sigs[0].n_samples, T)
     folds = []  # (fit part per record, hold-out window, observer length, y_hold per record)
     for (fit_w,), hold in sel0.folds:
         folds.append(([rec.window(*fit_w) for rec in records], hold,
@@ -341,20 +344,17 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
     # 11.0 ms per record on Table 3 model 1, but a record choosing a new structure compiled
     # for about 1.3 s)
 
-    T = records[0].n_samples
-
     def hold_scores(pairs):
         """(mean hold-out E over the folds, mean fit %) of each (record, models per fold)."""
         E = np.zeros((len(pairs), len(folds)))
         fit = np.zeros_like(E)
         for f, (_, hold, ob, y_hold) in enumerate(folds):
             start, length, ob = validation_window(records[0], hold, ob, n_max, "estimate")
-            # the window padded to its record bucket (only its own samples count) and the
-            # records by that bucket beyond their own, so that every window fits: records of
-            # every length in a bucket share the observer's program
-            bound = record_bucket(length)
-            padded = {r: padded_record(records[r], record_bucket(T) + bound) for r, _ in pairs}
-            obs = map_pairs(_observed, [padded[r] for r, _ in pairs],
+            # the window padded to its `window_bucket` (only its own samples count; past the
+            # record's end the last sample is held): records of every length in a record
+            # bucket share the observer's program
+            bound = window_bucket(length, T)
+            obs = map_pairs(_observed, [records[r] for r, _ in pairs],
                             [padded_model(ms[f], n_max) for _, ms in pairs],
                             device=False, start=np.int32(start), length=bound,
                             ob_length=np.int32(ob), valid=np.int32(length))
@@ -370,8 +370,12 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
     def per_fold(stage, pairs, **kw):
         """The stage's result on each fold for each (record, starts per fold) (its best iterate
         when it stopped early: the hold-out E judges it); None where it could not run."""
+        # each fit part padded to its `window_bucket` in the record: records of every length
+        # in a record bucket share the stage's programs
         outs = [_staged_many(stage, [folds[f][0][r] for r, _ in pairs],
-                             [ms[f] for _, ms in pairs], **kw) for f in range(len(folds))]
+                             [ms[f] for _, ms in pairs],
+                             bucket=window_bucket(folds[f][0][0].n_samples, T), **kw)
+                for f in range(len(folds))]
         return [None if any(o[k] is None for o in outs) else [o[k] for o in outs]
                 for k in range(len(pairs))]
 
@@ -440,7 +444,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         warnings.simplefilter("ignore")
         fits = dict(zip(sv_rec, _staged_many(srivc, [est_sigs[r] for r in sv_rec],
                                              [seeds[r][0] for r in sv_rec], n_max=n_max,
-                                             max_iter=max_iter, tol=tol)))
+                                             max_iter=max_iter, tol=tol, bucket=est_bucket)))
         # SRIVC that did not converge on all estimation data: the next SRIVC candidate in the
         # hold-out ranking that converges replaces it (at most FALLBACKS tries per record)
         ranked = [sorted((x for x in t if x[3] == "srivc" and x[2] != best[r][2]), key=key)
@@ -452,7 +456,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
             alt = [stabilised(sels[r].refit.best(ranked[r][attempt][2])) for r in redo]
             for r, a, fit in zip(redo, alt, _staged_many(
                     srivc, [est_sigs[r] for r in redo], [a[0] for a in alt], n_max=n_max,
-                    max_iter=max_iter, tol=tol)):
+                    max_iter=max_iter, tol=tol, bucket=est_bucket)):
                 if fit is not None and fit.converged:
                     m0 = fits[r].model
                     fell[r] = (f"SRIVC from the hold-out winner n={m0.n} m={list(m0.m)} did "
@@ -473,7 +477,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         oes = dict(zip(oe_rec, _staged_many(
             output_error, [est_sigs[r] for r in oe_rec],
             [fits[r].model if fits.get(r) is not None else seeds[r][0] for r in oe_rec],
-            n_max=n_max)))
+            n_max=n_max, bucket=est_bucket)))
         for r in [r for r in fell if methods[r] == "srivc + output error"]:
             if oes[r] is None or not oes[r].converged:  # no better: SRIVC's best iterate
                 methods[r] = "srivc"

@@ -234,7 +234,7 @@ def _lm_arguments(size: int, max_steps, rtol, atol):
 
 
 def _prepare(signals: Signals, model: Model, window, n_max: int | None = None,
-             rehearse: tuple | None = None):
+             rehearse: tuple | None = None, bucket: int | None = None):
     """The scaled residual of `output_error` at its start (the initial state from the
     observer, eq. 14) and what `_finish` needs. The model is zero-padded to order `n_max` with
     numerators of order n_max (every structure of that order: one program), or by default to
@@ -260,7 +260,7 @@ def _prepare(signals: Signals, model: Model, window, n_max: int | None = None,
     # the window padded to its record bucket and the record to hold it (repeating the last
     # sample; only the window's own samples count): windows and records of every length in a
     # bucket share the programs
-    bound = record_bucket(length)
+    bound = record_bucket(length) if bucket is None else bucket
     pad = record_bucket(max(signals.n_samples, k0 + bound)) - signals.n_samples
     sig = replace_fields(signals.unlabelled(), **{  # host glue in NumPy: no eager programs
         key: edge_padded(np.asarray(getattr(signals, key)), pad) for key in ("y", "u")})
@@ -351,18 +351,20 @@ def _finish(residual, meta, solved) -> OutputErrorFit:
 
 
 def output_error_many(records, models, *, n_max: int | None = None, max_steps: int = 100,
-                      rtol: float = 1e-10, atol: float = 1e-12) -> list:
+                      rtol: float = 1e-10, atol: float = 1e-12,
+                      bucket: int | None = None) -> list:
     """`output_error(records[i], models[i])` for every pair (whole records), the
     Levenberg-Marquardt iterations of each chunk of pairs of one padded shape in one compiled
     call (`lax.map`, chunks as in `_batch.groups`); with `n_max` every structure of order
-    <= n_max has that shape (`_prepare`).
-    An entry is None where the start could not be simulated (overflow, unobservable)."""
+    <= n_max has that shape (`_prepare`); `bucket`: the records' padded length (at least
+    theirs; default their `record_bucket`). An entry is None where the start could not be
+    simulated (overflow, unobservable)."""
     from ._batch import groups, in_parallel, stack, unstack
 
     prepared = []
     for sig, model in zip(records, models):
         try:
-            prepared.append(_prepare(sig, model, None, n_max))
+            prepared.append(_prepare(sig, model, None, n_max, bucket=bucket))
         except ValueError:
             prepared.append(None)
     out = [None] * len(prepared)

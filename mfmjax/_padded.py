@@ -11,7 +11,6 @@ Its free parameters as one vector, the padded $\theta$, are
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -19,6 +18,7 @@ from . import _boundary as _b
 from ._jit import jit
 from ._model import Model
 from ._observers import observe_forced
+from ._quadrature import shift_samples
 from ._signals import Signals
 from ._simulate import forced_terms
 from ._statespace import realisation
@@ -113,8 +113,9 @@ def observe_padded(sig: Signals, c, start, length: int, ob_length, valid=None):
     `start .. start + length - 1` (`start` traced; of them the first `valid`, see
     `observe_forced`): `observe_window` for any order at once, the drive computed for the
     window's samples only (the record can be much longer)."""
-    yw = jax.lax.dynamic_slice_in_dim(sig.y, start, length)
-    forced, live = padded_forced(sig, c, start + jnp.arange(length))
+    rows = start + jnp.arange(length)  # may run past the record's end (held last sample)
+    yw = shift_samples(sig.y, 0, rows)
+    forced, live = padded_forced(sig, c, rows)
     return observe_forced(forced, yw, sig.dt, 0, length, ob_length, live, valid)
 
 

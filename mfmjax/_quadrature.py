@@ -73,6 +73,23 @@ def record_bucket(n_samples: int) -> int:
     return next(m << k for m in (4, 5, 6, 7, 8) if m << k >= n_samples)
 
 
+WINDOW_SLACK = 2  # samples added to a window before scaling (`window_bucket`)
+
+
+def window_bucket(length: int, n_samples: int) -> int:
+    """Compiled length of a window of `length` samples of an `n_samples` record: the
+    `record_bucket` of the window scaled as the record is by its own bucket R,
+    ceil((length + WINDOW_SLACK) R / n_samples), and at most R. A window that is a fixed share
+    of the record (a hold-out block, a fit part) then has one bucket for every record length in
+    the record's bucket (a share's own bucket crossed an edge inside it: 1290 samples after
+    1500 compiled 9 programs again). The slack covers the +-1 sample by which a share's
+    length rounds, which crossed an edge where the share of R is one (2/3 of 1536 is 1024:
+    1000 of 1500 samples gave 1024, 967 of 1450 gave 1025, bucket 1280). At most 1.25 x 1.25
+    the window's length (plus the slack); the whole record gets R."""
+    R = record_bucket(n_samples)
+    return min(record_bucket(-(-(length + WINDOW_SLACK) * R // n_samples)), R)
+
+
 def edge_padded(x: np.ndarray, pad: int) -> np.ndarray:
     """`x` (T, ...) with its last sample repeated `pad` times: every signal's range, hence the
     excitation and scale tests, is unchanged, and the delayed inputs see the held last sample
@@ -221,13 +238,17 @@ def shift_samples(x, lag, rows=None):
     holding x[0] before the start and the last sample after the end (`lag` >= -1 and `rows`
     may be traced).
 
-    One slice of the record edge-padded by the window's length before it and one sample after
-    it: exactly x[clip(j - lag, 0, T - 1)] (a lag beyond the front padding starts the slice at
-    its first sample: every value x[0], as it should be). A slice, not a gather of every
-    index: the forced terms of the search's validation simulations took 0.87x the time."""
+    One slice of the record edge-padded by the window's length before it and one sample (with
+    `rows`, which may run past the end from a start inside the record: the window's length
+    and one) after it: exactly x[clip(j - lag, 0, T - 1)] (a lag beyond the front padding
+    starts the slice at its first sample: every value x[0], as it should be). A slice, not a
+    gather of every index: the forced terms of the search's validation simulations took
+    0.87x the time."""
     L = x.shape[0] if rows is None else rows.shape[0]
     first = 0 if rows is None else rows[0]
-    padded = jnp.concatenate([jnp.full(L, x[0]), x, x[-1:]])
+    # rows may run past the record's end (a window buffer beyond it, `window_bucket`)
+    after = 1 if rows is None else L + 1
+    padded = jnp.concatenate([jnp.full(L, x[0]), x, jnp.full(after, x[-1])])
     # clamped here: dynamic_slice reads a negative start from the end
     return jax.lax.dynamic_slice_in_dim(padded, jnp.maximum(L + first - lag, 0), L)
 

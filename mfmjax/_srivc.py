@@ -443,12 +443,13 @@ def _checked(signals: Signals, model: Model, max_iter, tol):
 
 
 def srivc_many(records, models, *, n_max: int | None = None, max_iter: int = 30,
-               tol: float = 1e-8) -> list:
+               tol: float = 1e-8, bucket: int | None = None) -> list:
     """`srivc(records[i], models[i])` for every pair (`Signals` of one layout), each chunk of
     pairs of one padded shape in one compiled call (`map_pairs`). `n_max`: every structure
     zero-padded to order `n_max` (`padded_model`: one program whatever the structures); None:
     each to its own order and largest numerator order, as `srivc` pads one. No warnings: the
-    caller reads `status`. An entry is None where `srivc` would raise ValueError."""
+    caller reads `status`. An entry is None where `srivc` would raise ValueError. `bucket`:
+    the records' padded length (`map_pairs`)."""
     starts, live, shapes = [], [], []
     for i, (signals, model) in enumerate(zip(records, models)):
         try:
@@ -460,7 +461,7 @@ def srivc_many(records, models, *, n_max: int | None = None, max_iter: int = 30,
         live.append(i)
         shapes.append((n, w))
     outs = map_pairs(padded_fit, [records[i] for i in live], starts, device=False,
-                     max_iter=max_iter, tol=tol)
+                     bucket=bucket, max_iter=max_iter, tol=tol)
     fits = [None] * len(models)
     for i, out, shape in zip(live, outs, shapes):
         fits[i] = None if out is None else _fit(records[i], models[i], out, shape)

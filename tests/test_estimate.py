@@ -178,19 +178,22 @@ def test_estimate_batch_compiles_nothing_for_new_realisations(batch_20db):
     assert all(e.converged for e in again)
 
 
-def test_estimate_batch_compiles_nothing_for_another_record_length(batch_20db):
-    """Records of another length in the same record bucket (1450 samples after 1500: the
-    hold-out blocks and fit parts shorter too, inside their own buckets) reuse every program:
-    the hold-out observer's window and the records given to the SRIVC and observer chunks are
-    padded to their buckets, only their own samples counting (before, 4 programs compiled
-    again). The estimates equal the unpadded computation's: the chosen stage and structure
-    are those of the 1500-sample batch, and `test_estimate_batch_equals_one_record_at_a_time`
-    compares a batch with the single-record path."""
+@pytest.mark.parametrize("length", [1450, 1290])
+def test_estimate_batch_compiles_nothing_for_another_record_length(batch_20db, length):
+    """Records of another length in the same record bucket (1536) reuse every program: 1450
+    samples after 1500 (hold-out blocks and fit parts inside their own buckets; before, 4
+    programs compiled again), and 1290 (hold-out blocks of 430 samples and fit parts of 860,
+    whose own buckets, 448 and 896, are not those of 500 and 1000: 9 programs compiled again).
+    The hold-out observer's window and the fit parts given to SRIVC and output error are
+    padded to their `window_bucket` in the record, only their own samples counting. The
+    estimates equal the unpadded computation's: the chosen stage and structure are those of
+    the 1500-sample batch, and `test_estimate_batch_equals_one_record_at_a_time` compares a
+    batch with the single-record path."""
     from jaxlog import compiles
 
     _, ests, _ = batch_20db
-    records = [r.window(0.0, 1449 * DT) for r in _realisations(20.0, range(60, 69))]
-    assert records[0].n_samples == 1450
+    records = [r.window(0.0, (length - 1) * DT) for r in _realisations(20.0, range(60, 69))]
+    assert records[0].n_samples == length
     with compiles() as names:
         again = mfmjax.estimate(records, **SMALL)
     assert {(e.model.n, e.method) for e in again} == {(e.model.n, e.method) for e in ests}

@@ -229,6 +229,17 @@ def test_unstable_estimate_is_flagged_eager_jit_and_vmap():
         assert np.asarray(jax.vmap(f)(jnp.asarray([1.5, 2.0])).status).tolist() == [want] * 2
 
 
+def _logged_twice():
+    """(t, u, y, signals) of a second-order plant driven by u, the signals holding u twice
+    (u2 = 2 u1), output noise 0.01."""
+    true = mfmjax.Model.from_coefficients([1.0, 0.8, 1.0], [[2.0]], intersample=["zoh"])
+    t = 0.1 * np.arange(1000)
+    u = np.sign(np.sin(0.3 * t)) + 0.5 * np.sign(np.sin(0.11 * t))
+    y = np.asarray(mfmjax.simulate(true, u[:, None], dt=0.1))
+    y = y + 0.01 * np.random.default_rng(1).standard_normal(y.shape)
+    return t, u, y, Signals(y, np.c_[u, 2 * u], dt=0.1, intersample="zoh", offset=False)
+
+
 def test_linearly_dependent_inputs_are_flagged_and_named():
     """One signal logged twice in other units (u2 = 2 u1): no method can split the gain, and
     under output noise the Gram's conditioning test missed it (noise fills the eigenvalue it
@@ -238,12 +249,7 @@ def test_linearly_dependent_inputs_are_flagged_and_named():
     from mfmjax._signals import dependent_inputs
     from mfmjax._status import Status
 
-    true = mfmjax.Model.from_coefficients([1.0, 0.8, 1.0], [[2.0]], intersample=["zoh"])
-    t = 0.1 * np.arange(1000)
-    u = np.sign(np.sin(0.3 * t)) + 0.5 * np.sign(np.sin(0.11 * t))
-    y = np.asarray(mfmjax.simulate(true, u[:, None], dt=0.1))
-    y = y + 0.01 * np.random.default_rng(1).standard_normal(y.shape)
-    sig = Signals(y, np.c_[u, 2 * u], dt=0.1, intersample="zoh", offset=False)
+    t, u, y, sig = _logged_twice()
     assert dependent_inputs(sig) == ("u1", "u2")
     with pytest.warns(UserWarning) as caught:
         model = mfmjax.identify(sig, Structure(2, [0, 0]), ModulatingFunction(4, 4, 5.0))
@@ -270,12 +276,7 @@ def test_search_flags_candidates_whose_inputs_are_linearly_dependent():
     separates the inputs (u2 one second later) is not flagged and ranks first."""
     from mfmjax._status import Status
 
-    true = mfmjax.Model.from_coefficients([1.0, 0.8, 1.0], [[2.0]], intersample=["zoh"])
-    t = 0.1 * np.arange(1000)
-    u = np.sign(np.sin(0.3 * t)) + 0.5 * np.sign(np.sin(0.11 * t))
-    y = np.asarray(mfmjax.simulate(true, u[:, None], dt=0.1))
-    y = y + 0.01 * np.random.default_rng(1).standard_normal(y.shape)
-    sig = Signals(y, np.c_[u, 2 * u], dt=0.1, intersample="zoh", offset=False)
+    sig = _logged_twice()[3]
     with pytest.warns(UserWarning, match=r"inputs \['u1', 'u2'\] are linearly dependent .* "
                       r"under the delays of 1 of 2 candidates"):
         res = mfmjax.search(sig, h=5.0, n=2, N=4, M=4, m=[[0], [0]],

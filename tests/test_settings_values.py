@@ -143,6 +143,34 @@ def test_identify_new_record_length_inside_a_bucket_compiles_nothing():
     assert float(model.J_rel) == pytest.approx(float(exact.J_rel), rel=1e-8)
 
 
+def test_search_new_record_length_with_a_validation_share_compiles_nothing(monkeypatch):
+    """A validation window that is a share of the record (the last third) has one buffer
+    (`window_bucket`) for every record length in the record's bucket (1200 and 1250 samples:
+    1280), which may run past the padded record's end (the last sample held there): 1250
+    samples after 1200 compiled the search's chunk again (its buffer, 448 samples from sample
+    833, was cut at the padded end to 447: 2 programs). E and fit equal those of buffers of
+    the window's exact length (`window_bucket` switched off) to rounding: the same
+    simulation, its sums over other lengths (1e-12)."""
+    from mfmjax._quadrature import record_bucket, window_bucket
+    from mfmjax._search import _grid
+
+    assert record_bucket(1200) == record_bucket(1250) == 1280
+    assert window_bucket(400, 1200) == window_bucket(417, 1250) == 448
+    grid = dict(n=(1, 2), N=(3, 4), M=(3, 4), h=(2.0, 3.0), m=[[0], [0]])
+    long = simulated_experiment(third_order_two_input(), dt=DT, n_samples=1250, seed=6,
+                                noise_std=0.02)
+    first = _head(long, 1200)
+    mfmjax.search(first, **grid, validate=(800 * DT, 1199 * DT))
+    with compiles() as names:
+        res = mfmjax.search(long, **grid, validate=(833 * DT, 1249 * DT))
+    assert names == [], f"a new record length compiled {names}"
+    monkeypatch.setattr(_grid, "window_bucket", lambda length, n_samples: length)
+    exact = mfmjax.search(long, **grid, validate=(833 * DT, 1249 * DT))
+    np.testing.assert_array_equal(res.columns["status"], exact.columns["status"])
+    for key in ("E", "fit"):
+        np.testing.assert_allclose(res.columns[key], exact.columns[key], rtol=1e-12)
+
+
 def test_simulate_new_record_length_inside_a_bucket_compiles_nothing():
     """`simulate` pads a concrete input to its record bucket (1100 and 1200 samples: 1280) and
     returns the first T samples; the response is causal, so they equal the unpadded program's

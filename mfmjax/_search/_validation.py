@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
 from .._linalg import hurwitz
 from .._padded import observe_padded
+from .._quadrature import shift_samples
 from .._signals import Signals
 from .._status import Status
 
@@ -17,7 +17,7 @@ def validate_candidate(sig: Signals, v_length: int, c, where):
     the observer's "ob", all values), the simulation started from the initial-state observer
     (eq. 14) of a zero-padded realisation."""
     start, valid = where["v_start"], where["v_valid"]
-    yv = jax.lax.dynamic_slice_in_dim(sig.y, start, v_length)
+    yv = shift_samples(sig.y, 0, start + jnp.arange(v_length))  # may run past the end
     obs = observe_padded(sig, c, start, v_length, where["ob"], valid)
     status = obs.status | jnp.where(hurwitz(c["a"]), 0, Status.UNSTABLE)
     inside = jnp.arange(v_length) < valid
