@@ -123,7 +123,7 @@ def _refuse_output_as_input(y, u, output_name, names):
             )
 
 
-def offset_needed(y) -> tuple[bool, str]:
+def offset_needed(y, u=None, names=()) -> tuple[bool, str]:
     """The default offset rule: (include the constant input?, the reason in words).
 
     On when the output sits at an operating point away from zero: |mean y| > 2 std y, unless
@@ -131,21 +131,39 @@ def offset_needed(y) -> tuple[bool, str]:
     the output's range of zero: a step or impulse response), which keeps the plain model. A
     step test from an ambient level (20 degC rising to 110) is not at rest at zero: on (the
     start used to be compared with half the range, so it was left off, and the a_0 and gain
-    came out wrong with status ok). A traced y (inside jit/vmap) cannot be inspected: the
-    term is left off; pass offset=True."""
-    if not _concrete(y):
+    came out wrong with status ok). Where the output is near or at rest at zero, an input `u`
+    (T, K) that sits at an operating point by the same test (a valve at 40-50 %, a PRBS around
+    5) turns it on too: the output is a deviation while the input is absolute, so at rest the
+    model needs a constant to cancel b_k0 u_k (without it `identify` returned the gain and a_0
+    wrong with status ok). A traced y or u (inside jit/vmap) cannot be inspected: the term is
+    left off; pass offset=True."""
+    if not _concrete(y) or (u is not None and not _concrete(u)):
         return False, "offset term off (traced data: pass offset=True to estimate one)"
-    y = np.asarray(y)
-    mean, std, span = float(np.mean(y)), float(np.std(y)), float(np.ptp(y))
-    start = float(np.mean(y[: min(10, y.shape[0])]))
+    on, why = _at_operating_point(np.asarray(y))
+    if on:
+        return True, (f"offset term estimated (auto: the output {why})")
+    cols = [] if u is None else np.asarray(u).reshape(np.shape(u)[0], -1).T
+    for name, col in zip(names or [f"u{k + 1}" for k in range(len(cols))], cols):
+        on, level = _at_operating_point(col)
+        if on:
+            return True, (f"offset term estimated (auto: input {name!r} {level}, while the "
+                          "output is near or at rest at zero: a deviation output with an "
+                          "absolute input)")
+    return False, f"no offset term (auto: the output {why})"
+
+
+def _at_operating_point(x) -> tuple[bool, str]:
+    """(does the signal sit at an operating point away from zero?, why in words): |mean| >
+    2 std and not starting at rest at zero (first samples within 10 % of its range of zero)."""
+    mean, std, span = float(np.mean(x)), float(np.std(x)), float(np.ptp(x))
+    start = float(np.mean(x[: min(10, x.shape[0])]))
     if abs(mean) <= 2 * std:
-        return False, ("no offset term (auto: the output's mean is within 2 standard deviations "
-                       "of zero)")
+        return False, "has its mean within 2 standard deviations of zero"
     if abs(start) <= 0.1 * span:
-        return False, (f"no offset term (auto: the output starts at rest at zero, at {start:.4g} "
-                       f"against a range of {span:.4g}: a step or impulse response)")
-    return True, (f"offset term estimated (auto: the output sits at {mean:.4g}, "
-                  f"{abs(mean) / max(std, 1e-300):.3g} standard deviations from zero)")
+        return False, (f"starts at rest at zero, at {start:.4g} against a range of {span:.4g}: "
+                       "a step or impulse response")
+    return True, f"sits at {mean:.4g}, {abs(mean) / max(std, 1e-300):.3g} standard deviations " \
+        "from zero"
 
 
 class Signals(eqx.Module):
@@ -307,7 +325,7 @@ class Signals(eqx.Module):
         self.dt, self.t0 = dt, float(t0)
         note = ""
         if offset is None:
-            offset, note = offset_needed(y)
+            offset, note = offset_needed(y, u, names)
         self.intersample, self.smooth, self.offset = intersample, smooth, bool(offset)
         self.offset_note = note
         self.output_rule = output_rule

@@ -126,6 +126,29 @@ def test_offset_default_handles_plant_data():
     assert Signals(y, u, dt=1.0, offset=False).offset_note == ""  # the user chose
 
 
+def test_offset_default_turns_on_for_an_input_at_an_operating_point():
+    """A deviation output with an absolute input (a valve stepped 40 -> 50 -> 45 %, y the
+    deviation from rest at 40 %): the output starts at rest at zero, so the output-only rule
+    left the term off and `identify` returned a = (0.14, 0.46), b = 0.14 for the plant
+    y'' + 0.8 y' + y = 6 (u - 40) with status ok. The input's level turns it on now, and
+    identify recovers a, b and the offset -6 * 40 (noise-free: the quadrature's O(dt^4) and
+    the record's end leave 1e-5 relative, as above). A PRBS around 5 does the same; around 0
+    (a deviation input too) the term stays off."""
+    t = 0.1 * np.arange(1000)
+    u = 40.0 + 10.0 * (t >= 10.0) - 5.0 * (t >= 60.0)
+    true = mfmjax.Model.from_coefficients([1.0, 0.8, 1.0], [[6.0]], intersample=["zoh"])
+    y = np.asarray(mfmjax.simulate(true, (u - 40.0)[:, None], dt=0.1))
+    sig = Signals(y, u[:, None], dt=0.1, intersample=["zoh"], input_names=["valve"])
+    assert sig.offset and "input 'valve' sits at 47" in sig.offset_note
+    model = mfmjax.identify(sig, mfmjax.Structure(2, [0]), mfmjax.ModulatingFunction(4, 4, 5.0))
+    np.testing.assert_allclose([*np.asarray(model.a)[:2], float(model.b[0][0]),
+                                float(model.offset)], [1.0, 0.8, 6.0, -240.0], rtol=1e-5)
+    prbs = np.repeat(np.random.default_rng(0).choice([-1.0, 1.0], 100), 10)
+    y = np.asarray(mfmjax.simulate(true, prbs[:, None], dt=0.1))
+    assert Signals(y, 5.0 + prbs[:, None], dt=0.1).offset
+    assert not Signals(y, prbs[:, None], dt=0.1).offset
+
+
 def test_estimate_selects_on_held_back_data_and_reports_it():
     sig = _record(6, noise=0.05)
     est = mfmjax.estimate(sig, h=(2.0, 3.0), n=(1, 2, 3), N=(3, 4), M=(3, 4), folds=2)
