@@ -24,7 +24,6 @@ import numpy as np
 import mfmjax
 import mfmjax._identify as _identify
 import mfmjax._observers as _observers
-import mfmjax._output_error as _output_error
 import mfmjax._simulate as _simulate
 import mfmjax._srivc as _srivc
 from mfmjax import ModulatingFunction, Signals, Structure
@@ -34,8 +33,9 @@ ST = Structure(3, (1, 0))
 
 
 def _unpadded(on: bool):
-    """Switch the padding off (`record_bucket` returns the length itself) or back on."""
-    for mod in (_identify, _observers, _simulate, _output_error, _srivc):
+    """Switch the padding off (`record_bucket` returns the length itself) or back on; output
+    error pads with `_observers.padded_window`."""
+    for mod in (_identify, _observers, _simulate, _srivc):
         mod.record_bucket = (lambda n: n) if on else _REAL
 
 

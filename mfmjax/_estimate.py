@@ -171,7 +171,7 @@ def estimate(
     outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes
                            + unstable_note(o.model)) for o, r in zip(outs, records)]
     for r, (o, rec) in enumerate(zip(outs, records)):
-        dependent = dependent_inputs(rec)
+        dependent = dependent_inputs(rec, o.model.delays)  # under the model's own delays
         if dependent:  # the gains and their standard errors are meaningless
             which = "" if single else f" (record {r})"
             text = (f"the inputs {list(dependent)} are linearly dependent (one is a multiple "

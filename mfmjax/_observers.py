@@ -226,13 +226,18 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
 _observe = jit(observe_window)
 
 
-def padded_window(signals: Signals, start: int, length: int):
+def padded_window(signals: Signals, start: int, length: int, bound: int | None = None):
     """(y, u, bound) of concrete `signals`: the window of `length` samples from `start` padded
-    to its record bucket `bound`, and the record to hold it, both by repeating the last sample
-    (NumPy: no program). Only the window's own samples may count (`observe_forced`'s `valid`):
-    windows and records of every length in a bucket then share one program."""
-    bound = record_bucket(length)
-    pad = record_bucket(max(signals.n_samples, start + bound)) - signals.n_samples
+    to its `record_bucket` `bound` (or the `bound` given: a share of the record's, its
+    `window_bucket`), and the record to hold it, both by repeating the last sample (NumPy: no
+    program): to its `record_bucket` R for a window from the record's start, else to R +
+    bound. Only the window's own samples may count (`observe_forced`'s `valid`): windows and
+    records of every length in a bucket then share one program (the record padded to hold
+    start + bound changed shape with the window's start)."""
+    T = signals.n_samples
+    bound = record_bucket(length) if bound is None else bound
+    R = record_bucket(T)
+    pad = (max(R, bound) if start == 0 else R + bound) - T
     y, u = (edge_padded(np.asarray(x), pad) for x in (signals.y, signals.u))
     return y, u, bound
 

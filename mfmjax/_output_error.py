@@ -22,7 +22,6 @@ from ._linalg import small_matmul
 from ._model import Model, is_stable, simulation_form
 from ._optim import USABLE
 from ._pytree import replace_fields
-from ._quadrature import edge_padded, record_bucket
 from ._signals import Signals
 from ._status import Status
 
@@ -150,7 +149,7 @@ class _Residual(eqx.Module):
     free: jax.Array  # (size,) the free entries of z
     start: jax.Array  # first sample of the window (a value: a new window is not a new program)
     valid: jax.Array  # the window's own length (a value); residuals beyond it are zero
-    length: int = eqx.field(static=True)  # the window's record bucket (`record_bucket`)
+    length: int = eqx.field(static=True)  # the window's bucket (`padded_window`)
 
     @property
     def size(self) -> int:
@@ -243,7 +242,7 @@ def _prepare(signals: Signals, model: Model, window, n_max: int | None = None,
     state is unobservable on the window. `rehearse` (`output_error`'s limits): on a layout's
     first call, `_lm` compiles while the observer runs (`_rehearsal`)."""
     from ._batch import overlapped
-    from ._observers import checked, validation_window
+    from ._observers import checked, padded_window, validation_window
 
     if model.n_inputs != signals.n_inputs:
         raise ValueError(f"output_error(): the model has {model.n_inputs} inputs but the signals "
@@ -257,13 +256,11 @@ def _prepare(signals: Signals, model: Model, window, n_max: int | None = None,
     k0, length = validation_window(signals, window, None, model.n, "output_error", "window")[:2]
     n_max, m_max = (model.n, max(model.m, default=0)) if n_max is None else (n_max, n_max)
     c = padded.padded_model(model, n_max, m_max)
-    # the window padded to its record bucket and the record to hold it (repeating the last
-    # sample; only the window's own samples count): windows and records of every length in a
-    # bucket share the programs
-    bound = record_bucket(length) if bucket is None else bucket
-    pad = record_bucket(max(signals.n_samples, k0 + bound)) - signals.n_samples
-    sig = replace_fields(signals.unlabelled(), **{  # host glue in NumPy: no eager programs
-        key: edge_padded(np.asarray(getattr(signals, key)), pad) for key in ("y", "u")})
+    # the window padded to its bucket and the record to hold it (`padded_window`; only the
+    # window's own samples count): windows and records of every length in a bucket share
+    # the programs
+    y, u, bound = padded_window(signals, k0, length, bucket)
+    sig = replace_fields(signals.unlabelled(), y=y, u=u)
     yv = sig.y[k0 : k0 + bound]
     yw = yv[:length]
     names, theta0 = free_parameters(model)

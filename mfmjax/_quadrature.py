@@ -73,21 +73,23 @@ def record_bucket(n_samples: int) -> int:
     return next(m << k for m in (4, 5, 6, 7, 8) if m << k >= n_samples)
 
 
-WINDOW_SLACK = 2  # samples added to a window before scaling (`window_bucket`)
+SHARE_STEPS = 48  # a window's share of its record rounded up to k / 48 (`window_bucket`)
 
 
 def window_bucket(length: int, n_samples: int) -> int:
-    """Compiled length of a window of `length` samples of an `n_samples` record: the
-    `record_bucket` of the window scaled as the record is by its own bucket R,
-    ceil((length + WINDOW_SLACK) R / n_samples), and at most R. A window that is a fixed share
-    of the record (a hold-out block, a fit part) then has one bucket for every record length in
-    the record's bucket (a share's own bucket crossed an edge inside it: 1290 samples after
-    1500 compiled 9 programs again). The slack covers the +-1 sample by which a share's
-    length rounds, which crossed an edge where the share of R is one (2/3 of 1536 is 1024:
-    1000 of 1500 samples gave 1024, 967 of 1450 gave 1025, bucket 1280). At most 1.25 x 1.25
-    the window's length (plus the slack); the whole record gets R."""
+    """Compiled length of a window of `length` samples of an `n_samples` record that is a
+    share of it (a hold-out block of round(s T) samples, a fit part of the rest): the share
+    (length - 1) / n_samples rounded up to k / SHARE_STEPS, times the record's bucket R, to
+    its `record_bucket` (at least the window, at least 64, at most R). The sample taken off
+    covers the +-0.5 by which a share's length rounds, so a share s gets k / 48 >= s for
+    every record length of a record bucket, and one program (a share's own bucket crossed an
+    edge inside it: 1290 samples after 1500 compiled 9 programs again; 1/3 and 2/3 of 1536
+    are 512 and 1024, edges themselves). A buffer holds at most 1/48 of R more than the
+    largest window of the share in the bucket, then up to 1.25x by `record_bucket`; the
+    whole record gets R."""
     R = record_bucket(n_samples)
-    return min(record_bucket(-(-(length + WINDOW_SLACK) * R // n_samples)), R)
+    steps = -(-max(length - 1, 0) * SHARE_STEPS // n_samples)
+    return min(record_bucket(max(-(-steps * R // SHARE_STEPS), length, 64)), R)
 
 
 def edge_padded(x: np.ndarray, pad: int) -> np.ndarray:

@@ -18,6 +18,7 @@ import numpy as np
 from ._batch import overlapped
 from ._observers import MIN_WINDOW
 from ._pytree import replace_fields
+from ._quadrature import window_bucket
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import identification_segments
 from ._search._result import ranking
@@ -94,7 +95,10 @@ def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
     plan = plan_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score="E",
                        validate=hold0, identify=list(fit0),
                        observer_window=OBSERVER_FRACTION * (hold0[1] - hold0[0]), eta=None,
-                       chunk_size=chunk_size, simulate=True)
+                       chunk_size=chunk_size, simulate=True,
+                       # a share of the record: one buffer for every length in its bucket
+                       v_bound=window_bucket(round((hold0[1] - hold0[0]) / signals.dt) + 1,
+                                             signals.n_samples))
     S = len(plan.where["segments"])
     batch = records if records is not None else [signals]
 

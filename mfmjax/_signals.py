@@ -144,19 +144,22 @@ def offset_needed(y, u=None, names=()) -> tuple[bool, str]:
         return True, (f"offset term estimated (auto: the output {why})")
     cols = [] if u is None else np.asarray(u).reshape(np.shape(u)[0], -1).T
     for name, col in zip(names or [f"u{k + 1}" for k in range(len(cols))], cols):
-        on, level = _at_operating_point(col)
-        if on:
+        on, level = _at_operating_point(col, start=float(np.min(np.abs(col[:10]))))
+        if on and np.ptp(col) > 0:  # a constant input would be the offset column itself
             return True, (f"offset term estimated (auto: input {name!r} {level}, while the "
                           "output is near or at rest at zero: a deviation output with an "
                           "absolute input)")
     return False, f"no offset term (auto: the output {why})"
 
 
-def _at_operating_point(x) -> tuple[bool, str]:
+def _at_operating_point(x, start: float | None = None) -> tuple[bool, str]:
     """(does the signal sit at an operating point away from zero?, why in words): |mean| >
-    2 std and not starting at rest at zero (first samples within 10 % of its range of zero)."""
+    2 std and not starting at rest at zero: `start` (default the mean of the first samples,
+    up to 10; an input's is the least |u| among them, so a step at the first samples, u[0] =
+    0 then 1, starts at rest) within 10 % of its range of zero."""
     mean, std, span = float(np.mean(x)), float(np.std(x)), float(np.ptp(x))
-    start = float(np.mean(x[: min(10, x.shape[0])]))
+    if start is None:
+        start = float(np.mean(x[: min(10, x.shape[0])]))
     if abs(mean) <= 2 * std:
         return False, "has its mean within 2 standard deviations of zero"
     if abs(start) <= 0.1 * span:

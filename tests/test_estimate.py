@@ -420,6 +420,17 @@ def test_estimate_says_when_its_inputs_are_linearly_dependent():
     assert int(est.model.status) & Status.ILL_CONDITIONED
     assert any("linearly dependent" in note for note in est.notes)
     assert "linearly dependent" in est.summary()
+    # a delay grid whose second value separates the inputs (u2 one second later): the search
+    # ranks that candidate first, and the returned model is checked under its own delays
+    # (it was flagged from the record's delays, 0 and 0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est = mfmjax.estimate(sig, h=(5.0,), n=(2,), N=(4,), M=(4,), m=[(0,), (0,)],
+                              delays=[[0.0], [0.0, 1.0]])
+    assert np.asarray(est.model.delays).tolist() == [0.0, 1.0]
+    assert not int(est.model.status) & Status.ILL_CONDITIONED
+    assert not any("linearly dependent" in note for note in est.notes)
+    assert not any("estimate(): the inputs" in str(w.message) for w in caught)
 
 
 def test_estimate_says_when_its_model_is_flagged():

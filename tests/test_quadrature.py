@@ -125,9 +125,33 @@ def test_shift_samples_is_the_clipped_index_for_every_lag_window_and_batch():
 
     x = jnp.asarray(np.random.default_rng(0).normal(size=50))
     lags = jnp.asarray([-1, 0, 1, 7, 49, 50, 61, 140])
-    for start, length in ((None, 50), (0, 12), (20, 12), (38, 12)):
+    # windows that run past the record's end (a buffer beyond it: the held last sample)
+    for start, length in ((None, 50), (0, 12), (20, 12), (38, 12), (45, 30), (49, 50)):
         j = np.arange(50) if start is None else start + np.arange(length)
         rows = None if start is None else jnp.asarray(j)
         want = np.stack([np.asarray(x)[np.clip(j - int(lag), 0, 49)] for lag in lags])
         got = jax.jit(jax.vmap(lambda lag, r=rows: shift_samples(x, lag, r)))(lags)
         np.testing.assert_array_equal(np.asarray(got), want)
+
+
+def test_window_bucket_keeps_one_bucket_for_a_share_across_a_record_bucket():
+    """A window that is a share of its record, cut as `holdout_folds` cuts them (a hold-out
+    block of L = round(s T) samples and a fit part of T - L), gets one `window_bucket` for
+    every record length T of a record bucket: shares whose length in the bucket falls on a
+    bucket edge (1/3 and 2/3 of 1536 are 512 and 1024), shares on the 1/48 steps (1/4, 1/2)
+    and small ones (5 % of 1024: 51 samples, which `record_bucket` keeps as they are; 64
+    now). The bucket holds the window and at most the record's bucket, which the whole
+    record gets."""
+    from mfmjax._quadrature import record_bucket, window_bucket
+
+    for lo, hi in ((513, 640), (1025, 1280), (1281, 1536), (1537, 1792), (2561, 3072),
+                   (7169, 8192)):
+        assert record_bucket(lo) == record_bucket(hi) != record_bucket(lo - 1)
+        for share in (0.05, 0.1, 0.2, 0.25, 0.3, 1 / 3, 0.4, 0.5):
+            L = {T: max(round(share * T), 1) for T in range(lo, hi + 1)}
+            assert len({window_bucket(L[T], T) for T in L}) == 1, (lo, share)
+            assert len({window_bucket(T - L[T], T) for T in L}) == 1, (lo, 1 - share)
+        for T in (lo, hi):
+            assert window_bucket(T, T) == record_bucket(T)
+            for length in (8, 100, T // 2, T - 1):
+                assert length <= window_bucket(length, T) <= record_bucket(T)

@@ -133,7 +133,7 @@ def test_offset_default_turns_on_for_an_input_at_an_operating_point():
     y'' + 0.8 y' + y = 6 (u - 40) with status ok. The input's level turns it on now, and
     identify recovers a, b and the offset -6 * 40 (noise-free: the quadrature's O(dt^4) and
     the record's end leave 1e-5 relative, as above). A PRBS around 5 does the same; around 0
-    (a deviation input too) the term stays off."""
+    (a deviation input too) the term stays off, and so it does for a step input."""
     t = 0.1 * np.arange(1000)
     u = 40.0 + 10.0 * (t >= 10.0) - 5.0 * (t >= 60.0)
     true = mfmjax.Model.from_coefficients([1.0, 0.8, 1.0], [[6.0]], intersample=["zoh"])
@@ -147,6 +147,12 @@ def test_offset_default_turns_on_for_an_input_at_an_operating_point():
     y = np.asarray(mfmjax.simulate(true, prbs[:, None], dt=0.1))
     assert Signals(y, 5.0 + prbs[:, None], dt=0.1).offset
     assert not Signals(y, prbs[:, None], dt=0.1).offset
+    # a step at the first samples (u[0] = 0, then 1) starts at rest, and a constant input
+    # would be the offset column itself: both keep it off (on, identify returned b = -2.06
+    # and an offset of 4.06 for this plant's unit step response)
+    for step in (np.r_[0.0, np.ones(999)], np.ones(1000)):
+        y = np.asarray(mfmjax.simulate(true, step[:, None], dt=0.1))
+        assert not Signals(y, step[:, None], dt=0.1).offset
 
 
 def test_estimate_selects_on_held_back_data_and_reports_it():

@@ -143,28 +143,27 @@ def test_identify_new_record_length_inside_a_bucket_compiles_nothing():
     assert float(model.J_rel) == pytest.approx(float(exact.J_rel), rel=1e-8)
 
 
-def test_search_new_record_length_with_a_validation_share_compiles_nothing(monkeypatch):
-    """A validation window that is a share of the record (the last third) has one buffer
-    (`window_bucket`) for every record length in the record's bucket (1200 and 1250 samples:
-    1280), which may run past the padded record's end (the last sample held there): 1250
-    samples after 1200 compiled the search's chunk again (its buffer, 448 samples from sample
-    833, was cut at the padded end to 447: 2 programs). E and fit equal those of buffers of
-    the window's exact length (`window_bucket` switched off) to rounding: the same
-    simulation, its sums over other lengths (1e-12)."""
-    from mfmjax._quadrature import record_bucket, window_bucket
+def test_search_new_record_length_with_a_validation_window_at_its_end_compiles_nothing(
+        monkeypatch):
+    """The validation window's buffer (its `record_bucket`: 417 samples -> 448) may run past
+    the padded record's end, the last sample held there: validating on the last 417 samples
+    of 1250 (from sample 833 of a record padded to 1280) after 1200 samples compiled the
+    search's chunk again (2 programs), because its buffer was cut at the padded end to 447.
+    E and fit equal those of buffers of the window's exact length (the bucket switched off)
+    to rounding: the same simulation, its sums over other lengths (1e-12)."""
+    from mfmjax._quadrature import record_bucket
     from mfmjax._search import _grid
 
-    assert record_bucket(1200) == record_bucket(1250) == 1280
-    assert window_bucket(400, 1200) == window_bucket(417, 1250) == 448
+    assert record_bucket(1200) == record_bucket(1250) == 1280 and record_bucket(417) == 448
     grid = dict(n=(1, 2), N=(3, 4), M=(3, 4), h=(2.0, 3.0), m=[[0], [0]])
     long = simulated_experiment(third_order_two_input(), dt=DT, n_samples=1250, seed=6,
                                 noise_std=0.02)
     first = _head(long, 1200)
-    mfmjax.search(first, **grid, validate=(800 * DT, 1199 * DT))
+    mfmjax.search(first, **grid, validate=(783 * DT, 1199 * DT))
     with compiles() as names:
         res = mfmjax.search(long, **grid, validate=(833 * DT, 1249 * DT))
     assert names == [], f"a new record length compiled {names}"
-    monkeypatch.setattr(_grid, "window_bucket", lambda length, n_samples: length)
+    monkeypatch.setattr(_grid, "record_bucket", lambda n: n)
     exact = mfmjax.search(long, **grid, validate=(833 * DT, 1249 * DT))
     np.testing.assert_array_equal(res.columns["status"], exact.columns["status"])
     for key in ("E", "fit"):
@@ -286,6 +285,39 @@ def test_observe_new_record_and_window_lengths_inside_a_bucket_compile_nothing(r
                                        atol=1e-10 * np.max(np.abs(np.asarray(want))))
 
 
+def test_window_at_the_record_end_on_a_new_record_length_compiles_nothing(monkeypatch):
+    """`observe` and `output_error` on the last 417 samples (buffer 448) of 1250 samples after
+    1200: the record used to be padded to hold the window's buffer, to the bucket of start +
+    buffer (1281 -> 1536 against 1280), so the new length compiled 3 programs. It is padded
+    by the buffer beyond its own bucket now, whatever the start, and compiles nothing. x0 and
+    E equal the unpadded `observe_window`'s to rounding (1e-10), and the output-error fit the
+    one with the padding switched off (theta within 1e-6 standard errors, E 1e-12, as in
+    `test_output_error_new_record_length_inside_a_bucket_compiles_nothing`)."""
+    import mfmjax._observers as ob
+    from mfmjax._observers import observe_window
+
+    model = third_order_two_input()
+    long = simulated_experiment(model, dt=DT, n_samples=1250, seed=3, noise_std=0.02)
+    first = _head(long, 1200)
+    window = lambda T: ((T - 417) * DT, (T - 1) * DT)  # noqa: E731
+    mfmjax.observe(model, first, window(1200))
+    mfmjax.output_error(first, model, window=window(1200))
+    with compiles() as names:
+        obs = mfmjax.observe(model, long, window(1250))
+        fit = mfmjax.output_error(long, model, window=window(1250))
+    assert names == [], f"a new record length compiled {names}"
+    ref = jax.jit(observe_window, static_argnums=(3, 5))(model.unlabelled(), long.y, long.u, DT,
+                                                          833, 417)
+    for got, want in ((obs.x_initial, ref.x_initial), (obs.E, ref.E)):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-10,
+                                   atol=1e-10 * np.max(np.abs(np.asarray(want))))
+    monkeypatch.setattr(ob, "record_bucket", lambda n: n)
+    exact = mfmjax.output_error(long, model, window=window(1250))
+    assert fit.converged and exact.converged
+    assert np.all(np.abs(fit.theta - exact.theta) <= 1e-6 * exact.std_errors)
+    assert fit.E == pytest.approx(exact.E, rel=1e-12)
+
+
 def test_search_new_settings_inside_a_bucket_compile_nothing(record):
     """A search over other N, M and h values (same grid sizes, same largest N + M, largest h in
     the same kernel bucket: 50..64 samples -> 64) and a new t0 and names reuses the compiled
@@ -395,9 +427,9 @@ def test_output_error_new_record_length_inside_a_bucket_compiles_nothing(noisy, 
     theta within 1e-10 |theta| <= 1e-7 standard errors here (|theta| / se < 1e3), 1e-6 with a
     margin; E is quadratic at the minimum, so equal to rounding (1e-12); the standard errors
     move with theta (1e-8)."""
-    import mfmjax._output_error as oe
+    import mfmjax._observers as ob  # `padded_window`, which output error pads with
 
-    fit, ref = _padded_and_unpadded(mfmjax.output_error, oe, noisy, monkeypatch)
+    fit, ref = _padded_and_unpadded(mfmjax.output_error, ob, noisy, monkeypatch)
     assert fit.converged and ref.converged
     assert np.all(np.abs(ref.theta) < 1e3 * ref.std_errors)
     assert np.all(np.abs(fit.theta - ref.theta) <= 1e-6 * ref.std_errors)

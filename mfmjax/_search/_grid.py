@@ -22,7 +22,6 @@ from .._quadrature import (
     kernel_length,
     legendre_coefficients,
     record_bucket,
-    window_bucket,
 )
 from .._signals import Signals
 
@@ -135,8 +134,9 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     """Check the grid against the record's shape and build the static parts of `search`.
 
     The record is padded to `n_padded` samples (default `record_bucket`) and the validation
-    window to `v_bound` (default its `window_bucket`, which may run past the padded record's
-    end: the last sample is held there); neither
+    window to `v_bound` (default its `record_bucket`: windows of one length share it; a
+    share of the record gives its `window_bucket`, `holdout_search`), which may run past the
+    padded record's end (the last sample is held there); neither
     padding counts (the Gram integral and E end with the data), so records and windows of
     every length in a bucket share one compilation. `span_bound` (time units) pads the
     kernels to at least this h + delay, so that plans with different delays share one (the
@@ -216,7 +216,7 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     v0, v_len, ob = validation_window(signals, validate, observer_window, n_max, "search")
     T_pad = record_bucket(signals.n_samples) if n_padded is None else n_padded
     if v_bound is None:  # may run past the padded record's end (held last sample)
-        v_bound = window_bucket(v_len, signals.n_samples)
+        v_bound = record_bucket(v_len)
     if not (signals.n_samples <= T_pad and v_len <= v_bound):
         raise ValueError(f"search(): the validation window ({v_len} samples) must fit "
                          f"v_bound={v_bound} and the record the padded one ({T_pad} samples)")
