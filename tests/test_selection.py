@@ -3,11 +3,13 @@ default, several outputs, and the CLI's identify/validate windows."""
 
 import json
 import math
+import os
 import warnings
 
 import numpy as np
 import pytest
 import reference as ref
+from conftest import SHARED
 
 import mfmjax
 from mfmjax import Model, Signals
@@ -93,6 +95,8 @@ def test_holdout_search_scores_on_samples_it_did_not_fit():
     np.testing.assert_allclose(_ab(sel.refit.best(0)), _ab(full), rtol=1e-10)
 
 
+@pytest.mark.skipif(not os.path.isdir(os.path.join(SHARED, "daisy-heat-exchanger")),
+                    reason="shared data not present")
 def test_offset_default_handles_plant_data():
     """Heat exchanger (output about 97 degC): the default Signals estimates the offset and
     says so, and its search winner is the one with offset=True (never worse); a record from
