@@ -123,32 +123,56 @@ def _refuse_output_as_input(y, u, output_name, names):
             )
 
 
-def offset_needed(y, u=None, names=()) -> tuple[bool, str]:
-    """The default offset rule: (include the constant input?, the reason in words).
+INPUT_SPREAD = 0.05  # an input turns the offset term on only if std > 5 % of |mean|
 
-    On when the output sits at an operating point away from zero: |mean y| > 2 std y, unless
-    the record starts at rest at zero (the mean of its first samples, up to 10, within 10 % of
-    the output's range of zero: a step or impulse response), which keeps the plain model. A
-    step test from an ambient level (20 degC rising to 110) is not at rest at zero: on (the
-    start used to be compared with half the range, so it was left off, and the a_0 and gain
-    came out wrong with status ok). Where the output is near or at rest at zero, an input `u`
-    (T, K) that sits at an operating point by the same test (a valve at 40-50 %, a PRBS around
-    5) turns it on too: the output is a deviation while the input is absolute, so at rest the
-    model needs a constant to cancel b_k0 u_k (without it `identify` returned the gain and a_0
-    wrong with status ok). A traced y or u (inside jit/vmap) cannot be inspected: the term is
-    left off; pass offset=True."""
+
+def offset_needed(y, u=None, names=()) -> tuple[bool, str]:
+    """The default offset rule: (include the constant input?, the reason in words). On when
+
+    - the output sits at an operating point away from zero: |mean y| > 2 std y, unless the
+      record starts at rest at zero (the mean of its first samples, up to 10, within 10 % of
+      the output's range of zero: a step or impulse response). A step test from an ambient
+      level (20 degC rising to 110) is not at rest at zero: on (the start used to be compared
+      with half the range, so a_0 and the gain came out wrong with status ok);
+    - or an input `u` (T, K) sits at an operating point by the same test (its start: the
+      least |u| among its first samples) and varies about it (std > `INPUT_SPREAD` |mean|):
+      a deviation output with an absolute input (a valve at 40-50 %, a PRBS around 5) needs
+      a constant to cancel b_k0 u_k at rest. An input that barely moves about its level (a
+      measured step applied at t = 0, 1 % noise) is nearly the constant column itself: the
+      split between its gain and the offset would be decided by its noise (b = 0 and offset
+      6 for a gain of 6, status ok);
+    - or the output's first sample is away from zero (beyond 10 % of its range) while every
+      input varies and its first sample is at zero (a free response, u = 0, stays off): the
+      output at zero input is not zero (a heater PRBS
+      0-100 % starting off, and a temperature from an ambient 20 degC: a and b 3-60 % off
+      with status ok without the term). A record that starts from x0 != 0 and is then
+      excited gets an offset it does not need, estimated near zero. The same heater
+      starting on (100 % at the first sample) cannot be told from a step applied at t = 0
+      to a plant at rest: pass offset=True.
+
+    A traced y or u (inside jit/vmap) cannot be inspected: the term is left off; pass
+    offset=True."""
     if not _concrete(y) or (u is not None and not _concrete(u)):
         return False, "offset term off (traced data: pass offset=True to estimate one)"
-    on, why = _at_operating_point(np.asarray(y))
+    y = np.asarray(y)
+    on, why = _at_operating_point(y)
     if on:
         return True, (f"offset term estimated (auto: the output {why})")
     cols = [] if u is None else np.asarray(u).reshape(np.shape(u)[0], -1).T
-    for name, col in zip(names or [f"u{k + 1}" for k in range(len(cols))], cols):
-        on, level = _at_operating_point(col, start=float(np.min(np.abs(col[:10]))))
-        if on and np.ptp(col) > 0:  # a constant input would be the offset column itself
+    names = names or [f"u{k + 1}" for k in range(len(cols))]
+    starts = [float(np.min(np.abs(col[:10]))) for col in cols]
+    for name, col, start in zip(names, cols, starts):
+        on, level = _at_operating_point(col, start=start)
+        if on and np.std(col) > INPUT_SPREAD * abs(np.mean(col)):
             return True, (f"offset term estimated (auto: input {name!r} {level}, while the "
                           "output is near or at rest at zero: a deviation output with an "
                           "absolute input)")
+    y_span = float(np.ptp(y))  # the first sample: the output with the inputs at zero there
+    if len(cols) and abs(float(y[0])) > 0.1 * y_span and \
+            all(0 < np.ptp(col) and abs(float(col[0])) <= 0.1 * np.ptp(col) for col in cols):
+        return True, (f"offset term estimated (auto: the output starts at {float(y[0]):.4g}, "
+                      f"against a range of {y_span:.4g}, while every input starts at zero: "
+                      "the output at zero input is not zero)")
     return False, f"no offset term (auto: the output {why})"
 
 
