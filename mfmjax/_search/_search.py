@@ -5,7 +5,10 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Sequence
 
+import numpy as np
+
 from .._signals import Signals, dependent_candidates
+from .._status import Status
 from ._engine import run_plan
 from ._grid import CHUNK_SETTINGS, plan_search
 from ._result import SearchResult
@@ -68,7 +71,9 @@ def search(
                  chunk_size=chunk_size, simulate=simulate, identify=identify, split=True,
                  apart=True)
     res = run_plan(plan, signals, progress, once=True)
-    rows, dependent = dependent_candidates(signals, res.columns["delays"])
+    if not np.any(res.columns["status"] & Status.ILL_CONDITIONED):  # `collect` checked them
+        return res
+    rows, dependent = dependent_candidates(signals, res.columns["delays"])  # their names
     if dependent:
         warnings.warn(f"search(): the inputs {list(dependent)} are linearly dependent (one is a "
                       f"multiple of the others) under the delays of {int(rows.sum())} of "
