@@ -33,7 +33,7 @@ from ._quadrature import window_bucket
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import CHUNK_SETTINGS, grid_values, structures
 from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
-from ._signals import Signals, dependent_inputs
+from ._signals import Signals, dependent_inputs, offset_undecided
 from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc, srivc_many
 from ._status import Status, describe
 
@@ -122,6 +122,11 @@ def estimate(
       it chose better (benchmarks/real_data.py uses it), but SRIVC's filters start from rest,
       so on a fit part that starts mid-record SRIVC is penalised by its start-up transient;
       the default `folds=1` fits from the record's start.
+    - An offset term the default rule cannot decide (`offset_undecided`: the output starts
+      away from zero with an input away from zero, e.g. a heater on from the first sample)
+      is chosen like a structure: the hold-out search runs with it too, and it is kept where
+      its MFM winner's hold-out E times the FPE factor is `OFFSET_GAIN` (5 %) lower; `notes`
+      gives both. A batch decides per record.
     - Grid arguments are those of `search`, except the default `m`: with hold-out selection
       it is m_k = 0..n for every input (direct feed-through, m_k = n, included; a strictly
       proper model wins unless the lag-0 term predicts the held-back data better); with
@@ -167,7 +172,9 @@ def estimate(
                                   records, grid, stages, holdout_folds(first, identify,
                                                                        holdout, folds)),
                               **grid)
-        outs = _from_holdout(records, sels, **stages)
+        records, sels = _offset_on_holdout(records, sels, dict(
+            estimation=identify, holdout=holdout, folds=folds, **grid))
+        outs = _by_layout(records, sels, stages)
     outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes
                            + unstable_note(o.model)) for o, r in zip(outs, records)]
     for r, (o, rec) in enumerate(zip(outs, records)):
@@ -518,6 +525,56 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
     return out
 
 
+def _offset_on_holdout(records: list, sels: list, search: dict) -> tuple[list, list]:
+    """The offset term chosen like a structure where the default rule cannot decide it
+    (`offset_undecided`: the output starts away from zero with an input away from zero): the
+    hold-out search runs again with the term, and the term is kept for a record where its MFM
+    winner's hold-out E times the FPE factor (`parsimonious`, the term one more parameter) is
+    `OFFSET_GAIN` below the winner's without it. Returns the records (offset and note set)
+    and their `HoldoutSearch`es."""
+    undecided = [r for r, rec in enumerate(records) if offset_undecided(rec)]
+    if not undecided:
+        return records, sels
+    on = [replace_fields(records[r], offset=True) for r in undecided]
+    with warnings.catch_warnings():  # the first search's candidates warned already
+        warnings.simplefilter("ignore")
+        sels_on = holdout_search(on[0], records=on, **search)
+    records, sels = list(records), list(sels)
+    for r, rec, sel in zip(undecided, on, sels_on):
+        without, with_ = _mfm_holdout_score(sels[r], rec.dt), _mfm_holdout_score(sel, rec.dt)
+        keep = with_ < (1 - OFFSET_GAIN) * without
+        start = float(np.mean(np.asarray(rec.y)[:10]))
+        why = (f"auto, decided on held-back data: the output starts at {start:.4g} with an "
+               f"input away from zero, where the data alone do not say whether the output at "
+               f"zero input is zero; the MFM winner's hold-out E x FPE is {with_:.4g} with the "
+               f"term and {without:.4g} without it")
+        records[r] = replace_fields(rec, offset_note=f"offset term estimated ({why})") if keep \
+            else replace_fields(records[r], offset_note=f"no offset term ({why})")
+        if keep:
+            sels[r] = sel
+    return records, sels
+
+
+def _mfm_holdout_score(sel: HoldoutSearch, dt: float) -> float:
+    """The best hold-out E times the FPE factor over a hold-out search's candidates."""
+    c = sel.refit.columns
+    k = c["n"] + np.sum(c["m"] + 1, axis=1) + int(sel.refit.has_offset)  # as `parsimonious`
+    return float(np.min(sel.E * (1.0 + 2.0 * k / min(round((w[1] - w[0]) / dt) + 1
+                                                      for _, w in sel.folds))))
+
+
+def _by_layout(records: list, sels: list, stages: dict) -> list:
+    """`_from_holdout` per offset layout (a batch whose records chose the term differently),
+    in record order."""
+    groups = [[r for r, rec in enumerate(records) if rec.offset == flag] for flag in (False, True)]
+    out = [None] * len(records)
+    for idx in (g for g in groups if g):
+        for r, o in zip(idx, _from_holdout([records[r] for r in idx], [sels[r] for r in idx],
+                                           **stages)):
+            out[r] = o
+    return out
+
+
 def parsimonious(E: float, model: Model, n_hold: int) -> float:
     """Hold-out E times Akaike's final-prediction-error factor (1 + 2k/N_h), k the model's free
     parameters, N_h the hold-out samples. On the hold-out E alone a structure that nests the
@@ -544,6 +601,7 @@ def near_tie_by_bic(tried: list, key) -> tuple:
 HOLDOUT_TIE = 0.05  # hold-out E within 5 % (as POLISH_GAIN): a tie, decided by BIC on all data
 FALLBACKS = 2  # next-ranked SRIVC candidates tried where the chosen one did not converge
 STRUCTURES = 8  # structures whose best setting goes on to SRIVC in the hold-out comparison
+OFFSET_GAIN = 0.05  # an undecided offset term must lower the hold-out E x FPE by 5 % to be kept
 
 
 def _best_per_structure(res: SearchResult, count: int) -> list[int]:

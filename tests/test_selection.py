@@ -14,6 +14,7 @@ from conftest import SHARED
 import mfmjax
 from mfmjax import Model, Signals
 from mfmjax._selection import holdout_search
+from mfmjax._signals import offset_undecided
 from mfmjax.datasets import daisy, simulated_experiment
 
 TRUE = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0, 0.3]], intersample=["foh"])  # zero at -3.3
@@ -181,6 +182,58 @@ def test_offset_default_turns_on_for_an_input_at_an_operating_point():
     model = mfmjax.identify(sig, mfmjax.Structure(2, [0]), mfmjax.ModulatingFunction(4, 4, 5.0))
     np.testing.assert_allclose([*np.asarray(model.a)[:2], float(model.b[0][0]),
                                 float(model.offset)], [1.0, 0.8, 0.6, 20.0], rtol=1e-5)
+
+
+def test_undecided_offset_is_chosen_on_held_back_data():
+    """A heater PRBS 0-100 % that is on at the first sample, the temperature from an ambient
+    20 degC: the output starts away from zero with the input away from zero, which the default
+    rule cannot tell from a plant at rest at its 100 % level (no offset). `Signals` leaves the
+    term off and says so; `estimate` fits both and keeps the term on held-back data. Forced
+    off, a_1 and b came out 45-80 % wrong (n = 2; with n = 3 in the grid, a pole at +7e-5
+    carried the ambient level and the static gain was 0.94 for 0.6). The control, the same
+    input from rest at the 100 % level (truth: no offset), keeps the term off. Tolerance:
+    noise 0.3 on a 60-degC output over 2000 samples gives SRIVC standard errors near 1e-3
+    relative (a_0, b) and 0.05 degC (offset); 1e-2 and 0.25 degC are about 5-10 of them."""
+    plant = Model.from_coefficients([1.0, 0.8, 1.0], [[0.6]], intersample=["zoh"])
+    rng = np.random.default_rng(1)
+    bits = rng.integers(0, 2, 101)
+    bits[0] = 1
+    heater = 100.0 * np.repeat(bits, 20)[:2000]
+    noise = 0.3 * rng.standard_normal(2000)
+    temp = 20.0 + np.asarray(mfmjax.simulate(plant, heater[:, None], dt=0.1)) + noise
+    grid = dict(h=(2.0,), n=(1, 2), N=(3,), M=(3,))
+    sig = Signals(temp, heater[:, None], dt=0.1, intersample=["zoh"])
+    assert not sig.offset and offset_undecided(sig)
+    assert "the data do not say whether the output at zero input is zero" in sig.offset_note
+    ests = mfmjax.estimate(sig, **grid)
+    assert ests.model.has_offset and ests.notes[0].startswith(
+        "offset term estimated (auto, decided on held-back data")
+    np.testing.assert_allclose([*np.asarray(ests.model.a)[:2], float(ests.model.b[0][0])],
+                               [1.0, 0.8, 0.6], rtol=1e-2)
+    assert float(ests.model.offset) == pytest.approx(20.0, abs=0.25)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        off = mfmjax.estimate(Signals(temp, heater[:, None], dt=0.1, intersample=["zoh"],
+                                      offset=False), **grid).model
+    assert abs(float(off.a[1]) - 0.8) > 0.08  # the failure this test guards against
+    # the control: at rest at the 100 % level (600 s of it before the record), no offset
+    warm = np.r_[np.full(6000, 100.0), heater]
+    at_rest = np.asarray(mfmjax.simulate(plant, warm[:, None], dt=0.1))[6000:] + noise
+    control = Signals(at_rest, heater[:, None], dt=0.1, intersample=["zoh"])
+    assert offset_undecided(control)
+    # in one batch with the heater: each record decides for itself, as one at a time
+    heated, est = mfmjax.estimate([sig, control], **grid)
+    assert heated.model.has_offset and np.array_equal(heated.model.theta, ests.model.theta)
+    assert not est.model.has_offset and est.notes[0].startswith(
+        "no offset term (auto, decided on held-back data")
+    np.testing.assert_allclose([*np.asarray(est.model.a)[:2], float(est.model.b[0][0])],
+                               [1.0, 0.8, 0.6], rtol=1e-2)
+    # the rule reads the output's start from its first samples, not y[0] alone: one noisy
+    # first sample (20 % of the range) of a record from rest at zero put the term on before
+    off_first = 100.0 - heater
+    y = np.array(mfmjax.simulate(plant, off_first[:, None], dt=0.1))
+    y[0] += 0.2 * np.ptp(y)
+    assert off_first[0] == 0.0 and not Signals(y, off_first[:, None], dt=0.1).offset
 
 
 def test_estimate_selects_on_held_back_data_and_reports_it():
