@@ -402,11 +402,13 @@ class Signals(eqx.Module):
         self.output_name, self.input_names = str(output_name), names
 
     def unlabelled(self, **changes) -> Signals:
-        """The same data with t0 = 0 and default names: what jitted programs see, so that a new
-        t0 or column name never compiles a new program (labels are put back on the results).
+        """The same data with t0 = 0, default names and no `offset_note`: what jitted programs
+        see, so that a new t0, column name or note never compiles a new program (labels are put
+        back on the results; the note, with its numbers, differs between records: a record at
+        another operating point compiled `identify` and the search's chunk again).
         `changes`: other fields replaced in the same copy (e.g. padded y and u)."""
         K = self.n_inputs
-        return replace_fields(self, t0=0.0, output_name="y",
+        return replace_fields(self, t0=0.0, output_name="y", offset_note="",
                               input_names=tuple(f"u{k + 1}" for k in range(K)), **changes)
 
     def window(self, t0: float, t1: float) -> Signals:

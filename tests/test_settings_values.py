@@ -380,6 +380,26 @@ def test_new_t0_and_names_compile_nothing(record):
     assert np.isfinite(float(obs.E))
 
 
+def test_new_operating_point_compiles_nothing(record):
+    """The default offset rule's note names the operating point ("sits at 100.2, 37 standard
+    deviations from zero"), so it differs between records; it is a label, kept out of the
+    programs like t0 and the names (before, a record at another level compiled `identify`,
+    the search's chunk and its validation again)."""
+    at = [Signals(np.asarray(record.y) + level, np.asarray(record.u), dt=DT,
+                  intersample=record.intersample) for level in (100.0, 130.0)]
+    assert all(sig.offset for sig in at) and at[0].offset_note != at[1].offset_note
+    mf, grid = ModulatingFunction(4, 5, 2.6), dict(n=(3,), m=[(1,), (0,)], N=4, M=5, h=2.6)
+    mfmjax.identify(at[0], ST, mf)
+    mfmjax.search(at[0], **grid)
+    with compiles() as names:
+        model = mfmjax.identify(at[1], ST, mf)
+        res = mfmjax.search(at[1], **grid)
+    assert names == [], f"a new operating point compiled {names}"
+    # noise-free: a_0 y = c at the level, to the quadrature's O(dt^4) (7e-10 relative here)
+    assert float(model.offset) == pytest.approx(130.0 * float(model.a[0]), rel=1e-6)
+    assert res.row(0)["n"] == 3
+
+
 def test_observe_new_window_start_compiles_nothing(record):
     model = mfmjax.identify(record, ST, ModulatingFunction(4, 5, 2.6))
     mfmjax.observe(model, record, (5.0, 25.0))
