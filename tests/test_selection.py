@@ -236,6 +236,34 @@ def test_undecided_offset_is_chosen_on_held_back_data():
     assert off_first[0] == 0.0 and not Signals(y, off_first[:, None], dt=0.1).offset
 
 
+def test_estimate_stages_shift_offset_records_by_their_starting_levels():
+    """SRIVC's filters start from rest: `estimate`'s stages shift a record with an offset term
+    by its levels at the first sample (the plant at rest there), not by its means. On the
+    heater switched on at the first sample (offset given, structure n = 2, m = 0 as the
+    truth) SRIVC's standard errors are then 1.15x output error's (output error estimates the
+    initial state, so its are the Cramer-Rao level; bound 1.3 as issue 14's std/CRB); shifted
+    by the means they were 7.4x, a start-up transient as large as the data's swing, and the
+    hold-out preferred n = 3."""
+    from mfmjax._estimate import _staged_many
+
+    plant = Model.from_coefficients([1.0, 0.8, 1.0], [[0.6]], intersample=["zoh"])
+    rng = np.random.default_rng(1)
+    bits = rng.integers(0, 2, 101)
+    bits[0] = 1
+    heater = 100.0 * np.repeat(bits, 20)[:2000]
+    temp = 20.0 + np.asarray(mfmjax.simulate(plant, heater[:, None], dt=0.1)) \
+        + 0.3 * rng.standard_normal(2000)
+    sig = Signals(temp, heater[:, None], dt=0.1, intersample=["zoh"], offset=True)
+    start = mfmjax.identify(sig, mfmjax.Structure(2, [0]), mfmjax.ModulatingFunction(3, 3, 2.0))
+    sv, = _staged_many(mfmjax.srivc, [sig], [start])
+    oe, = _staged_many(mfmjax.output_error, [sig], [start], n_max=2)
+    assert sv.converged and oe.converged and sv.names == oe.names
+    assert np.all(sv.std_errors <= 1.3 * oe.std_errors), sv.std_errors / oe.std_errors
+    truth = np.array([1.0, 0.8, 0.6, 20.0])  # a_0, a_1, b_10, offset
+    got = np.r_[np.asarray(sv.model.a)[:2], float(sv.model.b[0][0]), float(sv.model.offset)]
+    assert np.all(np.abs(got - truth) <= 4 * sv.std_errors)
+
+
 def test_estimate_selects_on_held_back_data_and_reports_it():
     sig = _record(6, noise=0.05)
     est = mfmjax.estimate(sig, h=(2.0, 3.0), n=(1, 2, 3), N=(3, 4), M=(3, 4), folds=2)
