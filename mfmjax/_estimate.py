@@ -124,9 +124,10 @@ def estimate(
       the default `folds=1` fits from the record's start.
     - An offset term the default rule cannot decide (`offset_undecided`: the output starts
       away from zero with an input away from zero, e.g. a heater on from the first sample)
-      is chosen like a structure: the hold-out search runs with it too, and it is kept where
-      its MFM winner's hold-out E times the FPE factor is `OFFSET_GAIN` (5 %) lower; `notes`
-      gives both. A batch decides per record.
+      is chosen like a structure (`selection="holdout"`; with "bic" the rule's choice, off,
+      stands): the hold-out search runs with it too, and it is kept where its MFM winner's
+      hold-out E times the FPE factor is `OFFSET_GAIN` (5 %) lower; `notes` gives both. A
+      batch decides per record.
     - Grid arguments are those of `search`, except the default `m`: with hold-out selection
       it is m_k = 0..n for every input (direct feed-through, m_k = n, included; a strictly
       proper model wins unless the lag-0 term predicts the held-back data better); with
