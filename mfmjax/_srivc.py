@@ -377,6 +377,14 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
     `padded_model`): new data, starts, dt, `max_iter` and `tol` are values too.
     Works under `jax.jit` and `jax.vmap` (over stacked `Signals` and `Model`s of equal shape).
 
+    The filters start from rest at the first sample, on the data as given. A record with an
+    offset term whose plant is at rest away from zero there (a heater switched on at the
+    first sample from an ambient level) leaves a start-up transient: on such a record the
+    standard errors came out 4.9x output error's. `estimate` shifts such records by their
+    starting levels first (1.15x there); do the same (`y - y[0]`, `u - u[0]`, the offset
+    mapped back: $b_{off} = b_{off}' - \sum_k b_{k0} u_k[0] + a_0 y[0]$) when calling this
+    directly.
+
     **A batch of records** (Monte Carlo realisations, repeated experiments): `signals` a list of
     `Signals` of one layout and `model` one start or a list of them (one per record). Chunks of
     records with one structure run in one compiled call each, on a thread per core
