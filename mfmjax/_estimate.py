@@ -13,6 +13,7 @@ from __future__ import annotations
 import warnings
 
 import equinox as eqx
+import jax
 import numpy as np
 
 from . import _boundary as _b
@@ -639,8 +640,8 @@ def _staged_many(stage, records, models, **kw) -> list:
         ybar, ubar = (0.0, np.zeros(signals.n_inputs))
         if model.has_offset:
             ybar, ubar = _start_levels(signals)
-            signals = eqx.tree_at(lambda q: (q.y, q.u), signals,
-                                  (signals.y - ybar, signals.u - ubar))
+            signals = eqx.tree_at(lambda q: (q.y, q.u), signals, jax.device_put(
+                (np.asarray(signals.y) - ybar, np.asarray(signals.u) - ubar)))  # no program
             model = _shift_offset(model, ybar, ubar, +1.0)
         shifted.append((ybar, ubar))
         sigs.append(signals)

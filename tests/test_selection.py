@@ -211,6 +211,14 @@ def test_undecided_offset_is_chosen_on_held_back_data():
     np.testing.assert_allclose([*np.asarray(ests.model.a)[:2], float(ests.model.b[0][0])],
                                [1.0, 0.8, 0.6], rtol=1e-2)
     assert float(ests.model.offset) == pytest.approx(20.0, abs=0.25)
+    # a shorter record of the same bucket compiles nothing, the level shift of its stages
+    # included (it compiled 4 eager subtractions)
+    from jaxlog import compiles
+
+    with compiles() as names:
+        mfmjax.estimate(Signals(temp[:1900], heater[:1900, None], dt=0.1, intersample=["zoh"]),
+                        **grid)
+    assert names == [], names
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         off = mfmjax.estimate(Signals(temp, heater[:, None], dt=0.1, intersample=["zoh"],
