@@ -658,7 +658,11 @@ def _staged_many(stage, records, models, **kw) -> list:
 def _start_levels(signals: Signals):
     """(y, u) at the record's first sample: y read from its first samples (up to 10) as the
     value there of their least-squares line (`_output_start`: output noise), u as given (an
-    input often steps within those samples)."""
+    input often steps within those samples). Shifted by them, the data start from rest where
+    the plant rests at the first sample with the inputs at their first values. Where an input
+    instead steps there from another level (a heater switched on at t = 0), structures with
+    m_k = 0 are unaffected (b_k0 times the step's height goes into the offset), while b_kj
+    (j >= 1) miss the step's derivative at t = 0 and only such structures see a transient."""
     from ._signals import _output_start
 
     u = np.asarray(signals.u).reshape(signals.n_samples, -1)
