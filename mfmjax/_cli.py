@@ -233,6 +233,14 @@ def _load_signals(args):
     return sig
 
 
+def _offset_note(sig) -> None:
+    """The default offset rule's decision and why (`Signals.offset_note`), on stderr as the
+    detrend note: the model it shapes is printed without it (a heater record whose rule could
+    not decide the term came back 35-43 % off with status ok and nothing said)."""
+    if sig.offset_note and "(detrended:" not in sig.offset_note:  # --detrend said it
+        print(f"note: {sig.offset_note}", file=sys.stderr)
+
+
 def _cmd_identify(args):
     import mfmjax
 
@@ -254,6 +262,7 @@ def _cmd_identify(args):
 
         saved = report["model"] if report else model
         save_model(saved, args.save, covariance=usable_covariance(saved, cov))
+    _offset_note(full)  # after the work: a user error stays one line
     if args.json:
         out = model.to_dict()
         if report:
@@ -651,6 +660,8 @@ def _cmd_search(args):
         saved = report["model"] if report else result.best()
         save_model(saved, args.save, covariance=usable_covariance(saved, cov))
     validation = _validation_report(args, sig, report["model"] if report else result.best())
+    if not args.estimate:  # estimate's notes say it, with its own decision
+        _offset_note(sig)  # after the work: a user error stays one line
     if args.json:
         out = result.to_dict(top=args.top)
         if validation:

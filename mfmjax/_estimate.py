@@ -34,7 +34,7 @@ from ._quadrature import window_bucket
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import CHUNK_SETTINGS, grid_values, structures
 from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
-from ._signals import Signals, dependent_inputs, offset_undecided
+from ._signals import Signals, dependent_inputs, offset_undecided, output_start
 from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc, srivc_many
 from ._status import Status, describe
 
@@ -545,7 +545,7 @@ def _offset_on_holdout(records: list, sels: list, search: dict) -> tuple[list, l
     for r, rec, sel in zip(undecided, on, sels_on):
         without, with_ = _mfm_holdout_score(sels[r], rec.dt), _mfm_holdout_score(sel, rec.dt)
         keep = with_ < (1 - OFFSET_GAIN) * without
-        start = float(np.mean(np.asarray(rec.y)[:10]))
+        start = output_start(np.asarray(rec.y))  # as the rule read it
         why = (f"auto, decided on held-back data: the output starts at {start:.4g} with an "
                f"input away from zero, where the data alone do not say whether the output at "
                f"zero input is zero; the MFM winner's hold-out E x FPE is {with_:.4g} with the "
@@ -657,16 +657,14 @@ def _staged_many(stage, records, models, **kw) -> list:
 
 def _start_levels(signals: Signals):
     """(y, u) at the record's first sample: y read from its first samples (up to 10) as the
-    value there of their least-squares line (`_output_start`: output noise), u as given (an
+    value there of their least-squares line (`output_start`: output noise), u as given (an
     input often steps within those samples). Shifted by them, the data start from rest where
     the plant rests at the first sample with the inputs at their first values. Where an input
     instead steps there from another level (a heater switched on at t = 0), structures with
     m_k = 0 are unaffected (b_k0 times the step's height goes into the offset), while b_kj
     (j >= 1) miss the step's derivative at t = 0 and only such structures see a transient."""
-    from ._signals import _output_start
-
     u = np.asarray(signals.u).reshape(signals.n_samples, -1)
-    return _output_start(np.asarray(signals.y)), np.array(u[0], dtype=np.float64)
+    return output_start(np.asarray(signals.y)), np.array(u[0], dtype=np.float64)
 
 
 def _shifted_back(out, ybar, ubar):

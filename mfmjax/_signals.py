@@ -141,7 +141,7 @@ def offset_needed(y, u=None, names=()) -> tuple[bool, str]:
       measured step applied at t = 0, 1 % noise) is nearly the constant column itself: the
       split between its gain and the offset would be decided by its noise (b = 0 and offset
       6 for a gain of 6, status ok);
-    - or the output's start (`_output_start`: its first samples' line at the first sample) is
+    - or the output's start (`output_start`: its first samples' line at the first sample) is
       away from zero (beyond 10 % of its range) while every input varies and its first sample is at zero (a
       free response, u = 0, stays off): the output at zero input is not zero (a heater PRBS
       0-100 % starting off, and a temperature from an ambient 20 degC: a and b 3-60 % off
@@ -172,8 +172,8 @@ def offset_needed(y, u=None, names=()) -> tuple[bool, str]:
             return True, (f"offset term estimated (auto: input {name!r} {level}, while the "
                           "output is near or at rest at zero: a deviation output with an "
                           "absolute input)")
-    # the output's start with the inputs at zero there (`_output_start`)
-    y_span, y_start = float(np.ptp(y)), _output_start(y)
+    # the output's start with the inputs at zero there (`output_start`)
+    y_span, y_start = float(np.ptp(y)), output_start(y)
     if len(cols) and abs(y_start) > 0.1 * y_span and \
             all(0 < np.ptp(col) and abs(float(col[0])) <= 0.1 * np.ptp(col) for col in cols):
         return True, (f"offset term estimated (auto: the output starts at {y_start:.4g}, "
@@ -188,7 +188,7 @@ def offset_needed(y, u=None, names=()) -> tuple[bool, str]:
     return False, f"no offset term (auto: the output {why})"
 
 
-def _output_start(y) -> float:
+def output_start(y) -> float:
     """The output at its first sample, read from its first samples (up to 10): the value there
     of their least-squares line. y[0] alone put the offset term on 9 of 100 records of a 10 dB
     Monte Carlo whose output starts at zero; their mean put it on first-order responses that
@@ -198,13 +198,13 @@ def _output_start(y) -> float:
 
 
 def _undecided(y, cols) -> bool:
-    """The output's start (`_output_start`) is away from zero (beyond 10 % of its
+    """The output's start (`output_start`) is away from zero (beyond 10 % of its
     range), and every input varies about its level (std > `INPUT_SPREAD` |mean|: the constant
     column is not nearly one of them, so the term is identifiable). Where `offset_needed` left
     the term off, an input is then away from zero at the first sample: a heater on from the
     start above an ambient level (the term needed) and a plant started from x0 != 0 (not
     needed) look alike there."""
-    return bool(len(cols)) and abs(_output_start(y)) > 0.1 * float(np.ptp(y)) and all(
+    return bool(len(cols)) and abs(output_start(y)) > 0.1 * float(np.ptp(y)) and all(
         0 < np.ptp(col) and np.std(col) > INPUT_SPREAD * abs(np.mean(col)) for col in cols)
 
 

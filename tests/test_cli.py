@@ -40,8 +40,12 @@ def test_identify_json(csv_file, capsys):
 
 def test_identify_table(csv_file, capsys):
     assert main(["identify", str(csv_file), *ARGS]) == 0
-    out = capsys.readouterr().out
-    assert "a_0" in out and "b_11" in out and "cond(G_eq)" in out
+    got = capsys.readouterr()
+    assert "a_0" in got.out and "b_11" in got.out and "cond(G_eq)" in got.out
+    # the default offset rule's decision is said (on stderr, as --detrend's note)
+    assert "note: no offset term (auto: the output has its mean within 2 standard " in got.err
+    assert main(["identify", str(csv_file), *ARGS, "--no-offset"]) == 0
+    assert "offset" not in capsys.readouterr().err  # the user chose
 
 
 @pytest.mark.parametrize(
