@@ -56,6 +56,7 @@ class Estimate(eqx.Module):
     selection: str  # how the structure was chosen, in words
     holdout: dict  # hold-out fit % of each stage tried ({} with selection="bic")
     notes: tuple  # data decisions (offset rule) and fallbacks, in words
+    score: float = float("nan")  # the chosen stage's hold-out E x FPE factor (`parsimonious`)
 
     def summary(self) -> str:
         """The model, the standard errors, how it was reached and whether it converged."""
@@ -126,9 +127,12 @@ def estimate(
     - An offset term the default rule cannot decide (`offset_undecided`: the output starts
       away from zero with an input away from zero, e.g. a heater on from the first sample)
       is chosen like a structure (`selection="holdout"`; with "bic" the rule's choice, off,
-      stands): the hold-out search runs with it too, and it is kept where its MFM winner's
-      hold-out E times the FPE factor is `OFFSET_GAIN` (5 %) lower; `notes` gives both. A
-      batch decides per record.
+      stands, and a warning says so): the hold-out search and the stages run with it too,
+      and it is kept where the returned stage's hold-out E times the FPE factor is
+      `OFFSET_GAIN` (5 %) lower; `notes` gives both. A record with an offset term runs its
+      SRIVC and output-error stages on data shifted by their starting levels and by their
+      means, and keeps the better on the held-back data (`_holdout_variants`). A batch
+      decides per record.
     - Grid arguments are those of `search`, except the default `m`: with hold-out selection
       it is m_k = 0..n for every input (direct feed-through, m_k = n, included; a strictly
       proper model wins unless the lag-0 term predicts the held-back data better); with
@@ -162,6 +166,16 @@ def estimate(
         results = overlapped(lambda: run_plan(plan, first, records=records),
                              _rehearsal(records, kw, stages))
         outs = _from_search(records, results, **stages)
+        for r, rec in enumerate(records):
+            if offset_undecided(rec):  # no held-back data to decide it on
+                which = "" if single else f" (record {r})"
+                text = ("the default rule left the offset term off, but the data do not say "
+                        "whether the output at zero input is zero (see the note above); "
+                        "selection='bic' keeps the rule's choice: pass offset=True if the "
+                        "output has a level of its own, or use selection='holdout', which "
+                        "decides it on held-back data")
+                outs[r] = replace_fields(outs[r], notes=outs[r].notes + (text,))
+                warnings.warn(f"estimate(){which}: {text}", stacklevel=2)
     else:
         n_grid = _b.integers("estimate", "n", n, lo=1,
                              fix="orders are whole numbers, e.g. n=(1, 2, 3)")
@@ -174,9 +188,8 @@ def estimate(
                                   records, grid, stages, holdout_folds(first, identify,
                                                                        holdout, folds)),
                               **grid)
-        records, sels = _offset_on_holdout(records, sels, dict(
+        records, outs = _holdout_variants(records, sels, stages, dict(
             estimation=identify, holdout=holdout, folds=folds, **grid))
-        outs = _by_layout(records, sels, stages)
     outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes
                            + unstable_note(o.model)) for o, r in zip(outs, records)]
     for r, (o, rec) in enumerate(zip(outs, records)):
@@ -301,7 +314,8 @@ def _observed(signals: Signals, candidate: dict, n_samples=None, **kw):
     return observe_candidate(signals.unlabelled(), candidate, **kw)
 
 
-def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=False) -> list:
+def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=False,
+                  shift: str = "start") -> list:
     """The stages of `estimate` after its hold-out search, every stage over all records and
     candidates in chunks of one compiled call, every structure zero-padded to the grid's
     largest order (SRIVC, the observers, and output error for a batch). `rehearsal`
@@ -382,7 +396,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         # each fit part padded to its `window_bucket` in the record: records of every length
         # in a record bucket share the stage's programs
         outs = [_staged_many(stage, [folds[f][0][r] for r, _ in pairs],
-                             [ms[f] for _, ms in pairs],
+                             [ms[f] for _, ms in pairs], shift=shift,
                              bucket=window_bucket(folds[f][0][0].n_samples, T), **kw)
                 for f in range(len(folds))]
         return [None if any(o[k] is None for o in outs) else [o[k] for o in outs]
@@ -453,7 +467,8 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         warnings.simplefilter("ignore")
         fits = dict(zip(sv_rec, _staged_many(srivc, [est_sigs[r] for r in sv_rec],
                                              [seeds[r][0] for r in sv_rec], n_max=n_max,
-                                             max_iter=max_iter, tol=tol, bucket=est_bucket)))
+                                             max_iter=max_iter, tol=tol, bucket=est_bucket,
+                                             shift=shift)))
         # SRIVC that did not converge on all estimation data: the next SRIVC candidate in the
         # hold-out ranking that converges replaces it (at most FALLBACKS tries per record)
         ranked = [sorted((x for x in t if x[3] == "srivc" and x[2] != best[r][2]), key=key)
@@ -465,7 +480,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
             alt = [stabilised(sels[r].refit.best(ranked[r][attempt][2])) for r in redo]
             for r, a, fit in zip(redo, alt, _staged_many(
                     srivc, [est_sigs[r] for r in redo], [a[0] for a in alt], n_max=n_max,
-                    max_iter=max_iter, tol=tol, bucket=est_bucket)):
+                    max_iter=max_iter, tol=tol, bucket=est_bucket, shift=shift)):
                 if fit is not None and fit.converged:
                     m0 = fits[r].model
                     fell[r] = (f"SRIVC from the hold-out winner n={m0.n} m={list(m0.m)} did "
@@ -486,7 +501,7 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         oes = dict(zip(oe_rec, _staged_many(
             output_error, [est_sigs[r] for r in oe_rec],
             [fits[r].model if fits.get(r) is not None else seeds[r][0] for r in oe_rec],
-            n_max=n_max, bucket=est_bucket)))
+            n_max=n_max, bucket=est_bucket, shift=shift)))
         for r in [r for r in fell if methods[r] == "srivc + output error"]:
             if oes[r] is None or not oes[r].converged:  # no better: SRIVC's best iterate
                 methods[r] = "srivc"
@@ -520,61 +535,62 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         std = np.sqrt(np.abs(np.diagonal(cov)))
         model = model.labelled(records[r].output_name, records[r].input_names)
         if method != "mfm" and records[r].offset:
-            notes += ("SRIVC / output error ran on data with their starting levels removed; "
+            notes += (f"SRIVC / output error ran on data with their {SHIFTS[shift]} removed; "
                       "the offset term is mapped back to the original levels",)
         out.append(Estimate(model, start, sels[r].refit, fit, oe, tuple(names), std, cov,
-                            converged, seeds[r][1], method, texts[r], held, notes))
+                            converged, seeds[r][1], method, texts[r], held, notes,
+                            key(b)))
     return out
 
 
-def _offset_on_holdout(records: list, sels: list, search: dict) -> tuple[list, list]:
-    """The offset term chosen like a structure where the default rule cannot decide it
-    (`offset_undecided`: the output starts away from zero with an input away from zero): the
-    hold-out search runs again with the term, and the term is kept for a record where its MFM
-    winner's hold-out E times the FPE factor (`parsimonious`, the term one more parameter) is
-    `OFFSET_GAIN` below the winner's without it. Returns the records (offset and note set)
-    and their `HoldoutSearch`es."""
+def _holdout_variants(records: list, sels: list, stages: dict, search: dict):
+    """`_from_holdout` for each record in every variant the data leave open, the one that
+    predicts the held-back data best kept (its chosen stage's hold-out E times the FPE factor,
+    `Estimate.score`). Returns (records, with the offset and its note as decided; estimates).
+
+    - An offset record's SRIVC and output-error stages run on data shifted by their starting
+      levels (`_start_levels`: right where the plant rests at the first sample, e.g. a step
+      test from steady state) and by their means (better where the record starts mid-
+      transient): the better is kept.
+    - An offset term the default rule cannot decide (`offset_undecided`: the output starts
+      away from zero with an input away from zero) is chosen like a structure: the hold-out
+      search runs again with the term, its stages too, and the term is kept where its chosen
+      stage is `OFFSET_GAIN` better. Compared on the returned stage, not on the MFM search:
+      at 10 % noise the MFM winners' equation-error bias had dropped a needed term."""
+    R = len(records)
+    runs = [(list(range(R)), records, sels, "start")]
+    if records[0].offset:  # one layout per batch
+        runs.append((list(range(R)), records, sels, "mean"))
     undecided = [r for r, rec in enumerate(records) if offset_undecided(rec)]
-    if not undecided:
-        return records, sels
-    on = [replace_fields(records[r], offset=True) for r in undecided]
-    with warnings.catch_warnings():  # the first search's candidates warned already
-        warnings.simplefilter("ignore")
-        sels_on = holdout_search(on[0], records=on, **search)
-    records, sels = list(records), list(sels)
-    for r, rec, sel in zip(undecided, on, sels_on):
-        without, with_ = _mfm_holdout_score(sels[r], rec.dt), _mfm_holdout_score(sel, rec.dt)
-        keep = with_ < (1 - OFFSET_GAIN) * without
-        start = output_start(np.asarray(rec.y))  # as the rule read it
-        why = (f"auto, decided on held-back data: the output starts at {start:.4g} with an "
-               f"input away from zero, where the data alone do not say whether the output at "
-               f"zero input is zero; the MFM winner's hold-out E x FPE is {with_:.4g} with the "
-               f"term and {without:.4g} without it")
-        records[r] = replace_fields(rec, offset_note=f"offset term estimated ({why})") if keep \
-            else replace_fields(records[r], offset_note=f"no offset term ({why})")
-        if keep:
-            sels[r] = sel
-    return records, sels
-
-
-def _mfm_holdout_score(sel: HoldoutSearch, dt: float) -> float:
-    """The best hold-out E times the FPE factor over a hold-out search's candidates."""
-    c = sel.refit.columns
-    k = c["n"] + np.sum(c["m"] + 1, axis=1) + int(sel.refit.has_offset)  # as `parsimonious`
-    return float(np.min(sel.E * (1.0 + 2.0 * k / min(round((w[1] - w[0]) / dt) + 1
-                                                      for _, w in sel.folds))))
-
-
-def _by_layout(records: list, sels: list, stages: dict) -> list:
-    """`_from_holdout` per offset layout (a batch whose records chose the term differently),
-    in record order."""
-    groups = [[r for r, rec in enumerate(records) if rec.offset == flag] for flag in (False, True)]
-    out = [None] * len(records)
-    for idx in (g for g in groups if g):
-        for r, o in zip(idx, _from_holdout([records[r] for r in idx], [sels[r] for r in idx],
-                                           **stages)):
-            out[r] = o
-    return out
+    if undecided:
+        on = [replace_fields(records[r], offset=True) for r in undecided]
+        with warnings.catch_warnings():  # the first search's candidates warned already
+            warnings.simplefilter("ignore")
+            sels_on = holdout_search(on[0], records=on, **search)
+        runs += [(undecided, on, sels_on, "start"), (undecided, on, sels_on, "mean")]
+    got = [{} for _ in range(R)]  # per record: (offset, shift) -> Estimate
+    for idx, recs, ss, shift in runs:
+        for r, est in zip(idx, _from_holdout(recs, ss, shift=shift, **stages)):
+            got[r][(recs[0].offset, shift)] = est
+    score = lambda e: e.score if np.isfinite(e.score) else np.inf  # noqa: E731
+    records, outs = list(records), []
+    for r, tried in enumerate(got):
+        flag = records[r].offset
+        best = min((e for (o, _), e in tried.items() if o == flag), key=score)
+        if r in undecided:
+            alt = min((e for (o, _), e in tried.items() if o), key=score)
+            keep = score(alt) < (1 - OFFSET_GAIN) * score(best)
+            start = output_start(np.asarray(records[r].y))  # as the rule read it
+            why = (f"auto, decided on held-back data: the output starts at {start:.4g} with "
+                   "an input away from zero, where the data alone do not say whether the "
+                   "output at zero input is zero; the returned stage's hold-out E x FPE is "
+                   f"{score(alt):.4g} with the term and {score(best):.4g} without it")
+            records[r] = replace_fields(records[r], offset=True, offset_note=(
+                f"offset term estimated ({why})")) if keep else replace_fields(
+                records[r], offset_note=f"no offset term ({why})")
+            best = alt if keep else best
+        outs.append(best)
+    return records, outs
 
 
 def parsimonious(E: float, model: Model, n_hold: int) -> float:
@@ -621,17 +637,22 @@ def _best_per_structure(res: SearchResult, count: int) -> list[int]:
     return out or [0]
 
 
-def _staged_many(stage, records, models, **kw) -> list:
+SHIFTS = {"start": "starting levels", "mean": "means"}
+
+
+def _staged_many(stage, records, models, shift: str = "start", **kw) -> list:
     r"""`stage` (srivc or output_error) from each model with its delays on its record, each
     chunk of pairs in one compiled call (SRIVC: every structure padded to `n_max`, default the
     largest order among the models; output error: padded only with `n_max`), on data with
-    their starting levels removed where the model has an offset term (`_start_levels`): the
-    free parameters are scaled by their magnitude, so a level far from zero (97 degC on the
-    heat exchanger) would swamp them, and SRIVC's filters start from rest, which the data then
-    do where the plant is at rest at the first sample (the means used before left a start-up
-    transient as large as the data's swing: on a heater switched on at the first sample from
-    an ambient 20 degC, SRIVC preferred n = 3, m = 2 with standard errors of 80-190 % to the
-    true n = 2, m = 0). The offset maps exactly between the two levels:
+    their starting levels (`shift="start"`, `_start_levels`) or their means (`"mean"`)
+    removed where the model has an offset term: the free parameters are scaled by their
+    magnitude, so a level far from zero (97 degC on the heat exchanger) would swamp them, and
+    SRIVC's filters start from rest, which the data then do where the plant is at rest at the
+    first sample with the starting levels removed (with the means, a heater switched on at the
+    first sample from an ambient 20 degC left a start-up transient as large as the data's
+    swing, and SRIVC preferred n = 3, m = 2 with standard errors of 80-190 % to the true
+    n = 2, m = 0), while a record that starts mid-transient fits better with the means
+    (`_holdout_variants` keeps the better). The offset maps exactly between the two levels:
     $b_{off}' = b_{off} + \sum_k b_{k0} \bar u_k - a_0 \bar y$. An entry is None where the
     stage could not run (e.g. an overflowing simulation)."""
     shifted, sigs, starts = [], [], []
@@ -639,7 +660,9 @@ def _staged_many(stage, records, models, **kw) -> list:
         signals = _with(signals, model)
         ybar, ubar = (0.0, np.zeros(signals.n_inputs))
         if model.has_offset:
-            ybar, ubar = _start_levels(signals)
+            ybar, ubar = _start_levels(signals) if shift == "start" else (
+                float(np.mean(np.asarray(signals.y))),
+                np.mean(np.asarray(signals.u).reshape(signals.n_samples, -1), axis=0))
             signals = eqx.tree_at(lambda q: (q.y, q.u), signals, jax.device_put(
                 (np.asarray(signals.y) - ybar, np.asarray(signals.u) - ubar)))  # no program
             model = _shift_offset(model, ybar, ubar, +1.0)
