@@ -246,6 +246,18 @@ def test_estimate_bic_one_record_compiles_nothing_for_another_order(batch_20db):
         est = mfmjax.estimate(record, **kw)
     assert est.model.n == 1 and est.method == "srivc + output error"
     assert names == [], names
+    # an offset term the default rule cannot decide (the output lifted by a fifth of its range:
+    # it starts away from zero with the input away from zero): "bic" has no held-back data to
+    # decide it on, so it keeps the rule's choice, says so and warns
+    from mfmjax._signals import offset_undecided
+
+    y = np.asarray(records[1].y)
+    lifted = mfmjax.Signals(y + 0.2 * np.ptp(y), np.asarray(records[1].u), dt=DT,
+                            intersample="zoh")
+    assert offset_undecided(lifted)
+    with pytest.warns(UserWarning, match="selection='bic' keeps the rule's choice"):
+        est = mfmjax.estimate(lifted, **kw)
+    assert not est.model.has_offset and "pass offset=True" in est.notes[-1]
 
 
 @pytest.mark.parametrize("selection, stages_fn, programs", [
