@@ -142,8 +142,9 @@ def offset_needed(y, u=None, names=()) -> tuple[bool, str]:
       split between its gain and the offset would be decided by its noise (b = 0 and offset
       6 for a gain of 6, status ok);
     - or the output's start (`output_start`: its first samples' line at the first sample) is
-      away from zero (beyond 10 % of its range) while every input varies and its first sample is at zero (a
-      free response, u = 0, stays off): the output at zero input is not zero (a heater PRBS
+      away from zero (beyond 10 % of its range) while every input varies and its first
+      sample is at zero (a free response, u = 0, stays off): the output at zero input is not
+      zero (a heater PRBS
       0-100 % starting off, and a temperature from an ambient 20 degC: a and b 3-60 % off
       with status ok without the term). A record that starts from x0 != 0 and is then
       excited gets an offset it does not need, estimated near zero.
@@ -193,8 +194,17 @@ def output_start(y) -> float:
     of their least-squares line. y[0] alone put the offset term on 9 of 100 records of a 10 dB
     Monte Carlo whose output starts at zero; their mean put it on first-order responses that
     rise within those samples."""
+    return _start_and_error(y)[0]
+
+
+def _start_and_error(y) -> tuple[float, float]:
+    """(`output_start`, its standard error from the line's residuals; 0 for 2 samples)."""
     head = np.asarray(y[: min(10, y.shape[0])], dtype=np.float64)
-    return float(np.polyval(np.polyfit(np.arange(head.shape[0]), head, 1), 0.0))
+    L, t = head.shape[0], np.arange(head.shape[0])
+    line = np.polyfit(t, head, 1)
+    resid = head - np.polyval(line, t)
+    se = np.sqrt(np.sum(resid**2) / max(L - 2, 1) * 2 * (2 * L - 1) / (L * (L + 1)))
+    return float(line[1]), float(se)
 
 
 UNDECIDED_START = 0.05  # the output's start beyond 5 % of its 2-98 % spread: undecided
@@ -208,18 +218,13 @@ def _undecided(y, cols) -> bool:
     undecided), while the 10 % alone, which noise widens, left a heater that needs the term
     off, unchecked, in 12 of 40 records at 10 % noise (10 of 40 now). And every input varies
     about its level (std > `INPUT_SPREAD` |mean|: the constant column is not nearly one of
-    them, so the term is identifiable). Where `offset_needed` left
-    the term off, an input is then away from zero at the first sample: a heater on from the
-    start above an ambient level (the term needed) and a plant started from x0 != 0 (not
-    needed) look alike there."""
+    them, so the term is identifiable). Where `offset_needed` left the term off, an input is
+    then away from zero at the first sample: a heater on from the start above an ambient
+    level (the term needed) and a plant started from x0 != 0 (not needed) look alike there."""
     spread = float(np.subtract(*np.percentile(y, [98, 2])))  # noise widens the full range
-    head = np.asarray(y[: min(10, y.shape[0])], dtype=np.float64)
-    L = head.shape[0]
-    t = np.arange(L)
-    resid = head - np.polyval(np.polyfit(t, head, 1), t) if L > 2 else np.zeros(L)
-    se = float(np.sqrt(np.sum(resid**2) / max(L - 2, 1) * 2 * (2 * L - 1) / (L * (L + 1))))
+    start, se = _start_and_error(y)
     away = min(0.1 * float(np.ptp(y)), max(UNDECIDED_START * spread, 3 * se))
-    return bool(len(cols)) and abs(output_start(y)) > away \
+    return bool(len(cols)) and abs(start) > away \
         and all(0 < np.ptp(col) and np.std(col) > INPUT_SPREAD * abs(np.mean(col))
                 for col in cols)
 
