@@ -728,9 +728,10 @@ def _shifted_back(out, ybar, ubar):
 
 def _shift_offset(model: Model, ybar: float, ubar, sign: float) -> Model:
     """The same model with the offset term for data shifted by -(ybar, ubar) (sign +1) or back."""
-    shift = sum(float(bk[0]) * float(ubar[k]) for k, bk in enumerate(model.b)) - \
-        float(model.a[0]) * ybar
-    return eqx.tree_at(lambda q: q.offset, model, model.offset + sign * shift)
+    a, b, offset = jax.device_get((model.a, model.b, model.offset))  # host: no eager programs
+    shift = sum(float(bk[0]) * float(ubar[k]) for k, bk in enumerate(b)) - float(a[0]) * ybar
+    return eqx.tree_at(lambda q: q.offset, model,
+                       jax.device_put(np.float64(offset) + sign * shift))
 
 
 def _with(signals: Signals, model: Model) -> Signals:

@@ -30,3 +30,13 @@ def compiles():
         names.extend(_executables.loaded[first_new:])
         logger.removeHandler(handler)
         jax.config.update("jax_log_compiles", before)
+
+
+def eager(names):
+    """The entries of `names` (from `compiles`) that are single JAX primitives or `jax.numpy`
+    functions compiled on their own: an operation on device arrays outside `jit` (tens of ms
+    each on a first call), which the library's public paths avoid (host work in NumPy)."""
+    import jax.numpy as jnp
+
+    ops = set(dir(jax.lax)) | set(dir(jnp))
+    return [n for n in names if n.startswith("jit(") and n[4:-1] in ops]

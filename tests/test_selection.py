@@ -205,7 +205,13 @@ def test_undecided_offset_is_chosen_on_held_back_data():
     sig = Signals(temp, heater[:, None], dt=0.1, intersample=["zoh"])
     assert not sig.offset and offset_undecided(sig)
     assert "the data do not say whether the output at zero input is zero" in sig.offset_note
-    ests = mfmjax.estimate(sig, **grid)
+    from jaxlog import compiles, eager
+
+    with compiles() as first:
+        ests = mfmjax.estimate(sig, **grid)
+    # no operation on device arrays outside the compiled programs (the offset's level shift
+    # of the stages compiled 5 eager programs: `_shift_offset` read the model on the device)
+    assert eager(first) == [] and first, first
     assert ests.model.has_offset and ests.notes[0].startswith(
         "offset term estimated (auto, decided on held-back data")
     np.testing.assert_allclose([*np.asarray(ests.model.a)[:2], float(ests.model.b[0][0])],
@@ -213,8 +219,6 @@ def test_undecided_offset_is_chosen_on_held_back_data():
     assert float(ests.model.offset) == pytest.approx(20.0, abs=0.25)
     # a shorter record of the same bucket compiles nothing, the level shift of its stages
     # included (it compiled 4 eager subtractions)
-    from jaxlog import compiles
-
     with compiles() as names:
         mfmjax.estimate(Signals(temp[:1900], heater[:1900, None], dt=0.1, intersample=["zoh"]),
                         **grid)
