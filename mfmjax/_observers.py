@@ -267,8 +267,8 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
     times = _b.array("moving_final_states", "times", times, ndim=(0, 1))
     if times.size == 0:
         raise ValueError("moving_final_states(): times is empty; give at least one time t_j")
-    times = jnp.atleast_1d(jnp.asarray(times, dtype=jnp.float64))
-    ends = jnp.round((times - signals.t0) / signals.dt).astype(jnp.int32)
+    times = np.atleast_1d(np.asarray(times, dtype=np.float64))  # NumPy: no eager programs
+    ends = np.round((times - signals.t0) / signals.dt).astype(np.int32)
     e_np = [int(v) for v in ends]
     if min(e_np) - (length - 1) < 0 or max(e_np) > signals.n_samples - 1:
         raise ValueError(
@@ -276,7 +276,8 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
         )
     _window(model, signals, (signals.t0, signals.t0 + (length - 1) * signals.dt),
             "moving_final_states")
-    return _moving(simulation_form(model), signals.y, signals.u, signals.dt, ends, length)
+    return _moving(simulation_form(model), signals.y, signals.u, signals.dt,
+                   jax.device_put(ends), length)
 
 
 @jit

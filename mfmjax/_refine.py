@@ -23,7 +23,7 @@ import numpy as np
 
 from . import _boundary as _b
 from ._identify import identify_model
-from ._jit import jit
+from ._jit import device, jit
 from ._model import Model
 from ._modulating import ModulatingFunction, as_values
 from ._observers import (
@@ -81,19 +81,17 @@ def scores(
     structure = structure.for_inputs(signals.n_inputs)
     v0, length, ob = validation_window(signals, validate, observer_window, structure.n, "scores")
     p = structure.n_params + int(signals.offset)
-    eta = jnp.ones(p) if eta is None else jnp.asarray(eta, dtype=jnp.float64)
+    eta = _value(np.ones(p) if eta is None else eta)
     if eta.shape != (p,):
         raise ValueError(f"scores(): eta must have {p} entries, got shape {eta.shape}")
-    delays = signals.delays if delays is None else jnp.asarray(delays, dtype=jnp.float64)
+    delays = signals.delays if delays is None else _value(delays)
     if h_max is None:
         h_max = float(h)  # raises for a tracer: then h_max is required
     if delay_max is None:
         delay_max = float(np.max(np.asarray(delays), initial=0.0))
     kernel = kernel_bucket(kernel_length(float(h_max) + float(delay_max), signals.dt))
-    f64 = jnp.float64
     sig = signals.unlabelled()
-    setting = (structure, jnp.asarray(h, dtype=f64), jnp.asarray(N, dtype=f64),
-               jnp.asarray(M, dtype=f64), delays, eta, kernel)
+    setting = (structure, _value(h), _value(N), _value(M), delays, eta, kernel)
     if _b.is_traced(sig.y) or _b.is_traced(sig.u):
         return _scores_jit(sig, *setting, jnp.asarray(v0, dtype=jnp.int32), length, ob)[0]
     padded, bound, end, valid = _padded_window(sig, v0, length)
@@ -134,6 +132,21 @@ class Refinement(eqx.Module):
     @property
     def improved(self) -> bool:
         return bool(self.path[-1] < self.path[0])
+
+
+def _value(x):
+    """A setting as a float64 device value: traced as it is (under `jit`/`grad`), a concrete
+    one put on the device without compiling anything (`device`)."""
+    return jnp.asarray(x, dtype=jnp.float64) if _b.is_traced(x) else device(x, np.float64)
+
+
+def _host_settings(x0: dict, box: dict, z) -> dict:
+    """`_Objective.settings` on the host (NumPy: no eager program): lo + (hi - lo) sigmoid(z)."""
+    s = dict(x0)
+    for k, v in jax.device_get(z).items():
+        lo, hi = (np.asarray(b, dtype=np.float64) for b in box[k])
+        s[k] = lo + (hi - lo) / (1.0 + np.exp(-np.asarray(v, dtype=np.float64)))
+    return s
 
 
 def _logit(x, lo, hi):
@@ -242,14 +255,14 @@ def refine(
     padded, bound, end, valid = _padded_window(signals.unlabelled(), v0, length)
     objective = _Objective(
         signals=padded, lengths=(np.int32(ob), end, valid),
-        x0={k: jnp.asarray(v, dtype=jnp.float64) for k, v in x0.items()},
-        lo={k: jnp.asarray(box[k][0], dtype=jnp.float64) for k in vary},
-        hi={k: jnp.asarray(box[k][1], dtype=jnp.float64) for k in vary}, eta=jnp.ones(p),
-        start=jnp.asarray(v0, dtype=jnp.int32), structure=start.structure, vary=tuple(vary),
+        x0={k: device(v, np.float64) for k, v in x0.items()},
+        lo={k: device(box[k][0], np.float64) for k in vary},
+        hi={k: device(box[k][1], np.float64) for k in vary}, eta=device(np.ones(p)),
+        start=device(v0, np.int32), structure=start.structure, vary=tuple(vary),
         kernel=kernel_bucket(kernel_length(h_top + d_top, dt)),
         window=bound, key={"E": "E", "J": "J_rel"}[score],
     )
-    z0 = {key: jnp.asarray(_logit(x0[key], *box[key])) for key in vary}
+    z0 = {key: device(_logit(x0[key], *box[key])) for key in vary}
     import optimistix as optx  # here: importing it costs 0.13 s at every CLI start
 
     solver = optx.BFGS(rtol=rtol, atol=atol)
@@ -280,8 +293,8 @@ def refine(
     if failed:
         return Refinement(start, start, s_start, s_start, np.exp(np.asarray(path)), code, steps,
                           math.exp(path[0]), score)
-    s = {k: _plain(v) for k, v in objective.settings(best_z).items()}
-    sig = eqx.tree_at(lambda q: q.delays, signals, jnp.asarray(s["delays"]).reshape(K))
+    s = {k: _plain(v) for k, v in _host_settings(x0, box, best_z).items()}
+    sig = eqx.tree_at(lambda q: q.delays, signals, device(np.reshape(s["delays"], K)))
     from ._identify import identify
 
     model = identify(sig, start.structure, ModulatingFunction(s["N"], s["M"], s["h"]))

@@ -574,3 +574,31 @@ def test_refine_new_record_length_inside_a_bucket_compiles_nothing(noisy, monkey
     for key in ("h", "N"):
         assert got.settings[key] == pytest.approx(ref.settings[key], rel=1e-10), key
     assert got.value == pytest.approx(ref.value, rel=1e-10)
+
+
+def test_first_calls_run_no_eager_programs(noisy):
+    """`scores`, `refine` and `moving_final_states` move their settings, windows and results
+    between host and device without compiling anything outside their jitted programs (each
+    eager operation on a device array is a program of its own, tens of ms on a first call:
+    `jnp.asarray` of the settings, the refined settings' sigmoid and the window ends cost
+    2, 5 and 6 of them). JAX's in-memory caches are dropped before each call, so an eager
+    program compiled by an earlier call or test would show again. The one conversion left in
+    `refine` is optimistix's: its BFGS step compares an equinox enumeration while it is
+    traced (`equinox/_enum.py`, `__eq__`)."""
+    from jaxlog import eager
+
+    start = mfmjax.identify(noisy, ST, ModulatingFunction(4, 5, 2.6))
+    calls = {
+        "scores": lambda: mfmjax.scores(noisy, ST, h=2.6, N=4, M=5),
+        "refine": lambda: mfmjax.refine(noisy, start, vary=("h", "N"), bounds={"h": (0.7, 4.0)},
+                                        max_steps=6),
+        "moving_final_states": lambda: mfmjax.moving_final_states(start, noisy, 5.0,
+                                                                  [10.0, 20.0, 29.0]),
+    }
+    allowed = {"refine": ["jit(convert_element_type)"]}
+    for name, call in calls.items():
+        jax.clear_caches()
+        with compiles() as names, warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a short refine may stop on max_steps
+            jax.block_until_ready(jax.tree.leaves(call()))
+        assert eager(names) == allowed.get(name, []), (name, names)
