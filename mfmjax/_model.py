@@ -109,16 +109,14 @@ class Model(eqx.Module):
                 f"Model.from_coefficients(): intersample needs {K} entries of 'zoh'/'foh'"
             )
         theta = np.concatenate([a] + bs + ([np.array([offset])] if offset is not None else []))
+        arrays = jax.device_put(dict(  # NumPy on the device: no eager programs
+            a=a / an, b=tuple(bk / an for bk in bs),
+            offset=np.float64(0.0 if offset is None else offset / an), delays=delays,
+            theta=theta / np.sum(theta) if np.sum(theta) != 0 else theta,
+            J=np.float64(np.nan), J_rel=np.float64(np.nan), cond=np.float64(np.nan),
+            status=np.int32(0)))
         return cls(
-            a=jnp.asarray(a / an),
-            b=tuple(jnp.asarray(bk / an) for bk in bs),
-            offset=jnp.asarray(0.0 if offset is None else offset / an),
-            delays=jnp.asarray(delays),
-            theta=jnp.asarray(theta / np.sum(theta) if np.sum(theta) != 0 else theta),
-            J=jnp.asarray(jnp.nan),
-            J_rel=jnp.asarray(jnp.nan),
-            cond=jnp.asarray(jnp.nan),
-            status=jnp.asarray(0, dtype=jnp.int32),
+            **arrays,
             mf=None,
             structure=structure,
             intersample=intersample,

@@ -321,6 +321,7 @@ def fit_percent(y, y_sim):
         if not spread > 0:
             raise ValueError("fit_percent(): the fit of an output y that is constant to float64 "
                              "precision is undefined; compare E or the mean square error instead")
-        return jnp.asarray(100.0 * (1.0 - float(np.linalg.norm(y - y_sim)) / spread))
+        return jax.device_put(np.float64(100.0 * (1.0 - float(np.linalg.norm(y - y_sim))
+                                                  / spread)))  # no eager program
     y, y_sim = jnp.asarray(y), jnp.asarray(y_sim)
     return masked_fit_percent(y, y_sim, y.shape[0])  # a constant y: fit undefined, NaN

@@ -168,7 +168,7 @@ def _status(text) -> int:
 
 def _with_mf(model: Model, doc: dict) -> Model:
     import equinox as eqx
-    import jax.numpy as jnp
+    import jax
 
     mf = ModulatingFunction(doc["N"], doc["M"], doc["h"])
     theta = np.asarray(doc["theta"], dtype=np.float64)
@@ -180,10 +180,10 @@ def _with_mf(model: Model, doc: dict) -> Model:
         )
     if not np.all(np.isfinite(theta)):
         raise ValueError("theta contains NaN or inf")
-    fields = dict(mf=mf, theta=jnp.asarray(theta),
-                  status=jnp.asarray(_status(doc.get("status")), dtype=jnp.int32))
+    values = dict(theta=theta, status=np.int32(_status(doc.get("status"))))
     for key in ("J", "J_rel", "cond"):
-        fields[key] = jnp.asarray(np.nan if doc.get(key) is None else float(doc[key]))
+        values[key] = np.float64(np.nan if doc.get(key) is None else float(doc[key]))
+    fields = dict(mf=mf, **jax.device_put(values))  # NumPy on the device: no eager programs
     return eqx.tree_at(
         lambda m: [getattr(m, k) for k in fields], model, list(fields.values()),
         is_leaf=lambda x: x is None,

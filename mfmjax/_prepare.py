@@ -80,14 +80,24 @@ class Trend(eqx.Module):
     def n_inputs(self) -> int:
         return self.u_level.shape[0]
 
+    def _xp(self, t):
+        """NumPy for concrete lines and times (no eager programs), else `jax.numpy`."""
+        traced = any(_b.is_traced(x) for x in (t, self.y_level, self.y_slope, self.u_level,
+                                                 self.u_slope))
+        return (jnp, self) if traced else (np, jax.device_get(self))
+
     def output_line(self, t) -> jax.Array:
         """$\\ell_y(t)$ at times `t` (any shape)."""
-        return self.y_level + self.y_slope * (jnp.asarray(t, dtype=jnp.float64) - self.t0)
+        xp, line = self._xp(t)
+        out = line.y_level + line.y_slope * (xp.asarray(t, dtype=xp.float64) - self.t0)
+        return out if xp is jnp else jax.device_put(out)
 
     def input_lines(self, t) -> jax.Array:
         """The inputs' lines at times `t` (T,): shape (T, K)."""
-        dt = jnp.asarray(t, dtype=jnp.float64)[:, None] - self.t0
-        return self.u_level[None, :] + self.u_slope[None, :] * dt
+        xp, line = self._xp(t)
+        dt = xp.asarray(t, dtype=xp.float64)[:, None] - self.t0
+        out = line.u_level[None, :] + line.u_slope[None, :] * dt
+        return out if xp is jnp else jax.device_put(out)
 
     def apply(self, signals: Signals, *, offset: bool = False) -> Signals:
         """Remove these lines (fitted on another record) from `signals`, at its own times.
@@ -180,10 +190,10 @@ def detrend(signals: Signals, kind: str = "linear", *, offset: bool = False
     what = "least-squares line" if kind == "linear" else "mean"
     note = (f"no offset term (detrended: the {what} of the output and of each input was removed, "
             "and the operating point with it)")
+    levels = jax.device_put(tuple(np.asarray(v, dtype=np.float64)  # no eager programs
+                                  for v in (y_level, y_slope, u_level, u_slope)))
     trend = Trend(
-        y_level=jnp.asarray(y_level, dtype=jnp.float64),
-        y_slope=jnp.asarray(y_slope, dtype=jnp.float64),
-        u_level=jnp.asarray(u_level), u_slope=jnp.asarray(u_slope), kind=kind, t0=float(t0),
+        *levels, kind=kind, t0=float(t0),
         output_name=signals.output_name, input_names=tuple(signals.input_names), note=note,
     )
     y_d = y - np.asarray(trend.output_line(t))

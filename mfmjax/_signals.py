@@ -499,7 +499,7 @@ class Signals(eqx.Module):
 
     @property
     def t(self) -> jax.Array:
-        return self.t0 + self.dt * jnp.arange(self.n_samples, dtype=jnp.float64)
+        return jax.device_put(self.t0 + self.dt * np.arange(self.n_samples, dtype=np.float64))
 
     # -- constructors ---------------------------------------------------------------------------
     @classmethod

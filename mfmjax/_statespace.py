@@ -11,7 +11,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from . import _boundary as _b
 from ._boundary import require_x64
 from ._model import Model
 
@@ -26,38 +28,42 @@ class StateSpace(eqx.Module):
 
 
 def state_space(model: Model) -> StateSpace:
-    r"""Eq. (18): the observable canonical realisation of `model`."""
+    r"""Eq. (18): the observable canonical realisation of `model` (a concrete model's on the
+    host in NumPy, so an eager call compiles nothing; a traced one's in JAX)."""
     require_x64("state_space")
+    traced = any(_b.is_traced(x) for x in jax.tree.leaves((model.a, model.b, model.offset)))
+    xp = jnp if traced else np
     n = model.n
-    a = model.a / model.a[n]
-    bs = list(model.b) + ([jnp.reshape(model.offset, (1,))] if model.has_offset else [])
-    padded = [jnp.zeros(n + 1).at[: bk.shape[0]].set(bk / model.a[n]) for bk in bs]
-    return realisation(a, padded, n)[0]
+    a, b, offset = (model.a, model.b, model.offset) if traced else \
+        jax.device_get((model.a, model.b, model.offset))
+    bs = list(b) + ([xp.reshape(offset, (1,))] if model.has_offset else [])
+    padded = [xp.concatenate([bk / a[n], xp.zeros(n + 1 - bk.shape[0])]) for bk in bs]
+    ss = realisation(a / a[n], padded, n, xp)[0]
+    return ss if traced else jax.device_put(ss)
 
 
-def realisation(a, bs, n):
+def realisation(a, bs, n, xp=jnp):
     r"""Eq. (18) from $a$ ($a_n = 1$) and numerators $b_k$, all zero-padded to length
     $n_{max}+1$, for an order $n \le n_{max}$ that may be traced (batched searches): the states
-    beyond $n$ are zero rows/columns. **Returns:** (StateSpace, live-state mask)."""
+    beyond $n$ are zero rows/columns. `xp`: `jax.numpy`, or `numpy` for concrete arrays.
+    **Returns:** (StateSpace, live-state mask)."""
     n_max = a.shape[0] - 1
-    i = jnp.arange(n_max)
+    i = xp.arange(n_max)
     live = i < n
-    A = jnp.where((i[:, None] == i[None, :] + 1) & live[:, None], 1.0, 0.0)
-    A = jnp.where((i[None, :] == n - 1) & live[:, None], -a[:n_max][:, None], A)
+    A = xp.where((i[:, None] == i[None, :] + 1) & live[:, None], 1.0, 0.0)
+    A = xp.where((i[None, :] == n - 1) & live[:, None], -a[:n_max][:, None], A)
     cols, ds = [], []
     for bk in bs:
         d = bk[n]  # D_k = b_kn when m_k = n (else 0): the strictly proper remainder goes to B
-        cols.append(jnp.where(live, bk[:n_max] - d * a[:n_max], 0.0))
+        cols.append(xp.where(live, bk[:n_max] - d * a[:n_max], 0.0))
         ds.append(d)
-    B = jnp.stack(cols, axis=1) if cols else jnp.zeros((n_max, 0))
-    D = jnp.stack(ds)[None, :] if ds else jnp.zeros((1, 0))
-    C = jnp.where(i == n - 1, 1.0, 0.0)[None, :]
+    B = xp.stack(cols, axis=1) if cols else xp.zeros((n_max, 0))
+    D = xp.stack(ds)[None, :] if ds else xp.zeros((1, 0))
+    C = xp.where(i == n - 1, 1.0, 0.0)[None, :]
     return StateSpace(A, B, C, D), live
 
 
 def _delays(model: Model):
-    import numpy as np
-
     return np.asarray(model.delays, dtype=np.float64).reshape(-1)
 
 
