@@ -188,7 +188,7 @@ class _Objective(eqx.Module):
 def refine(
     signals: Signals, start: Model, *, score: str = "E", vary=SETTINGS, bounds: dict | None = None,
     validate=None, observer_window=None, max_steps: int = 40, rtol: float = 1e-6,
-    atol: float = 1e-8, top: int = 3,
+    atol: float = 1e-8, top: int = 3, _span: float = 0.0,
 ) -> Refinement:
     r"""Refine the modulating-function settings (and delays) of `start` by gradient descent.
 
@@ -200,8 +200,10 @@ def refine(
     variable, so the iterates never leave the box.
 
     `start` may be a `SearchResult`: its best `top` candidates are refined and the refinement
-    with the lowest score is returned. A refinement that fails (solver error, non-finite score,
-    or no improvement) returns the starting model, with the solver's code in `result`.
+    with the lowest score is returned; their kernels are sized for the largest of their boxes
+    (h + delays), so candidates of one structure share one compiled program. A refinement
+    that fails (solver error, non-finite score, or no improvement) returns the starting
+    model, with the solver's code in `result`. (`_span`: internal, that shared size.)
     """
     from ._boundary import check_refine
     from ._search import SearchResult
@@ -213,10 +215,12 @@ def refine(
     if isinstance(start, SearchResult):  # refine the best `top` candidates, keep the best
         if len(start) == 0:
             raise ValueError("refine(): the search result is empty")
-        runs = [refine(signals, start.best(i), score=score, vary=vary, bounds=bounds,
-                       validate=validate, observer_window=observer_window,
-                       max_steps=max_steps, rtol=rtol, atol=atol)
-                for i in range(min(top, len(start)))]
+        starts = [start.best(i) for i in range(min(top, len(start)))]
+        span = max(_kernel_span(_box(signals, s, bounds), vary, s) for s in starts)
+        runs = [refine(signals, s, score=score, vary=vary, bounds=bounds, validate=validate,
+                       observer_window=observer_window, max_steps=max_steps, rtol=rtol,
+                       atol=atol, _span=span)
+                for s in starts]
         return min(runs, key=lambda r: r.value)  # the score of the model each run returns
     if not isinstance(start, Model) or start.mf is None:
         raise TypeError("refine(): start must be a Model from identify or a SearchResult")
@@ -225,21 +229,12 @@ def refine(
     bad = sorted(set(vary) - set(SETTINGS))
     if bad or not vary:
         raise ValueError(f"refine(): vary must name some of {SETTINGS} (got {list(vary)})")
-    K, n, dt = signals.n_inputs, start.n, signals.dt
+    K, dt = signals.n_inputs, signals.dt
     if "delays" in vary and K == 0:
         raise ValueError("refine(): no inputs, nothing to delay")
-    duration = signals.duration
+    box = _box(signals, start, bounds)
     h0, N0, M0 = float(start.mf.h), float(start.mf.N), float(start.mf.M)
     d0 = np.asarray(start.delays, dtype=np.float64).reshape(K)
-    box = {
-        "h": (h0 / 4, min(4 * h0, duration / 3)),
-        "N": (float(n), MAX_EXPONENT), "M": (float(n), MAX_EXPONENT),
-        "delays": (np.zeros(K), np.minimum(np.maximum(2 * d0, d0 + 20 * dt), duration / 4)),
-    }
-    for key, val in (bounds or {}).items():
-        if key not in SETTINGS:
-            raise ValueError(f"refine(): unknown bound {key!r}; use {SETTINGS}")
-        box[key] = (np.asarray(val[0], dtype=np.float64), np.asarray(val[1], dtype=np.float64))
     x0 = {"h": h0, "N": N0, "M": M0, "delays": d0}
     for key in vary:
         lo, hi = box[key]
@@ -250,8 +245,6 @@ def refine(
     v0, length, ob = validation_window(signals, validate, observer_window, start.structure.n,
                                        "refine")
     p = start.structure.n_params + int(signals.offset)
-    h_top = float(np.max(box["h"][1]) if "h" in vary else h0)
-    d_top = float(np.max(box["delays"][1]) if "delays" in vary else np.max(d0, initial=0.0))
     padded, bound, end, valid = _padded_window(signals.unlabelled(), v0, length)
     objective = _Objective(
         signals=padded, lengths=(np.int32(ob), end, valid),
@@ -259,7 +252,7 @@ def refine(
         lo={k: device(box[k][0], np.float64) for k in vary},
         hi={k: device(box[k][1], np.float64) for k in vary}, eta=device(np.ones(p)),
         start=device(v0, np.int32), structure=start.structure, vary=tuple(vary),
-        kernel=kernel_bucket(kernel_length(h_top + d_top, dt)),
+        kernel=kernel_bucket(kernel_length(max(_kernel_span(box, vary, start), _span), dt)),
         window=bound, key={"E": "E", "J": "J_rel"}[score],
     )
     z0 = {key: device(_logit(x0[key], *box[key])) for key in vary}
@@ -300,6 +293,31 @@ def refine(
     model = identify(sig, start.structure, ModulatingFunction(s["N"], s["M"], s["h"]))
     return Refinement(model, start, s, s_start, np.exp(np.asarray(path)), code, steps,
                       math.exp(best_f), score)
+
+
+def _box(signals: Signals, start: Model, bounds) -> dict:
+    """The settings' box: `refine`'s defaults around `start`, overridden by `bounds`."""
+    K, n, dt, duration = signals.n_inputs, start.n, signals.dt, signals.duration
+    h0 = float(start.mf.h)
+    d0 = np.asarray(start.delays, dtype=np.float64).reshape(K)
+    box = {
+        "h": (h0 / 4, min(4 * h0, duration / 3)),
+        "N": (float(n), MAX_EXPONENT), "M": (float(n), MAX_EXPONENT),
+        "delays": (np.zeros(K), np.minimum(np.maximum(2 * d0, d0 + 20 * dt), duration / 4)),
+    }
+    for key, val in (bounds or {}).items():
+        if key not in SETTINGS:
+            raise ValueError(f"refine(): unknown bound {key!r}; use {SETTINGS}")
+        box[key] = (np.asarray(val[0], dtype=np.float64), np.asarray(val[1], dtype=np.float64))
+    return box
+
+
+def _kernel_span(box: dict, vary, start: Model) -> float:
+    """The largest h + delay the box lets the kernels meet (fixes their static length)."""
+    d0 = np.asarray(start.delays, dtype=np.float64)
+    h_top = float(np.max(box["h"][1]) if "h" in vary else float(start.mf.h))
+    return h_top + float(np.max(box["delays"][1]) if "delays" in vary
+                         else np.max(d0, initial=0.0))
 
 
 def _plain(v):
