@@ -396,7 +396,7 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
         t_final = 7.0 * scale + float(np.max(np.asarray(model.delays), initial=0.0))
     t_final = _b.number("step_response", "t_final", t_final, lo=0, lo_open=True,
                         fix="give the duration in the model's time unit")
-    dt = t_final / (n_points - 1)
+    dt = np.float64(t_final / (n_points - 1))  # a value: no program per t_final
     form, theta, live = order_parameters(model, free_parameters(model)[1])
     base, ys, stds = _step_base(form), [], []
     cov = _placed(cov, live, theta.size)

@@ -37,13 +37,13 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
     # order n, then the structure's own columns (and x0's)
     base, theta, live = order_parameters(model, theta0)
     v = np.concatenate([theta, np.asarray(x0, dtype=np.float64)])
-    J = np.asarray(_sensitivities(base, u, v, float(dt), int(length)))
+    J = np.asarray(_sensitivities(base, u, v, np.float64(dt), int(length)))  # dt a value
     J = J[:, np.concatenate([live, theta.size + np.arange(model.n)])]
     return names, np.sqrt(np.diag(gauss_newton_covariance(J, sigma**2)))[: theta0.size]
 
 
 @jit
-def _sensitivities(model, u, v, dt: float, length: int):
+def _sensitivities(model, u, v, dt, length: int):
     """J = d y_sim / d(theta, x0) at v = (free parameters, x0): `jax.jacfwd` of the exact
     simulation, one compiled program (eager, it dispatched every operation on its own)."""
     p = v.shape[0] - model.n

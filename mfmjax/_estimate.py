@@ -249,7 +249,7 @@ def _rehearsal(records: list, grid: dict, stages: dict, windows=None):
     except Exception:  # noqa: BLE001
         return None
     start = lambda w: round((w - first.t0) / first.dt)  # noqa: E731 (t0 enters no program)
-    key = (first.n_samples, first.dt, first.n_inputs, first.intersample, first.offset, n_max,
+    key = (first.n_samples, first.n_inputs, first.intersample, first.offset, n_max,
            tuple(sorted(stages.items())), None if windows is None else tuple(
                start(x) for x in np.hstack([np.ravel(w) for fit, hold in windows[0]
                                             for w in (*fit, hold)] + [np.ravel(windows[1])])))

@@ -311,7 +311,7 @@ def _finish(residual, meta, solved) -> OutputErrorFit:
     Gauss-Newton covariance there; warns when not converged."""
     original, model, was_unstable, names, theta0, scale, x_scale, x_init, idx = meta
     z, result, n_steps, r0, J0, r, J = jax.device_get(solved)
-    p_theta, length, dt = theta0.size, int(residual.valid), residual.signals.dt
+    p_theta, length, dt = theta0.size, int(residual.valid), float(residual.signals.dt)
     live = np.concatenate([idx, residual.theta0.shape[0] + np.arange(model.n)])
     code = LM_CODES[int(result)]
     E0 = float(np.sum(r0**2)) * dt

@@ -284,7 +284,7 @@ class Signals(eqx.Module):
     y: jax.Array
     u: jax.Array
     delays: jax.Array
-    dt: float = eqx.field(static=True)
+    dt: np.float64  # a value (NumPy float64 on the host, traced in programs): no program per dt
     t0: float = eqx.field(static=True)
     intersample: tuple[str, ...] = eqx.field(static=True)
     smooth: tuple[bool, ...] = eqx.field(static=True)
@@ -413,7 +413,7 @@ class Signals(eqx.Module):
         if _concrete(y) and _concrete(u):
             _refuse_output_as_input(np.asarray(y), np.asarray(u), output_name, names)
         self.y, self.u, self.delays = y, u, delays
-        self.dt, self.t0 = dt, float(t0)
+        self.dt, self.t0 = np.float64(dt), float(t0)
         note = ""
         if offset is None:
             offset, note = offset_needed(y, u, names)

@@ -138,7 +138,8 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
     x0 = (jnp if _b.is_traced(x0) else np).asarray(x0, dtype=np.float64)  # NumPy: no program
     if x0.shape != (model.n,):
         raise ValueError(f"simulate(): x0 must have shape ({model.n},), got {x0.shape}")
-    dt = _b.number("simulate", "dt", dt, lo=0, lo_open=True, fix="give the sampling interval")
+    dt = np.float64(_b.number("simulate", "dt", dt, lo=0, lo_open=True,  # a value: no program
+                              fix="give the sampling interval"))          # per dt
     # a concrete u is padded to its record bucket: records of every length in it share one
     # program; the response is causal, so the first T samples never see the padding
     T = u.shape[0]
@@ -161,7 +162,7 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
     return (y, jax.device_put(np.asarray(xs)[:T])) if return_state else y
 
 
-_simulate = jit(simulate_status)  # one cacheable program (dt static, as in observe)
+_simulate = jit(simulate_status)  # one cacheable program per order and record bucket
 
 
 def _overflow_message(model: Model, u, x0) -> str:

@@ -184,8 +184,9 @@ def test_simulate_new_record_length_inside_a_bucket_compiles_nothing():
     with compiles() as names:
         y, x = mfmjax.simulate(model, u[:1100], dt=DT, return_state=True)
     assert names == [], f"a new record length compiled {names}"
-    y_ref, x_ref, status = jax.jit(simulate_status, static_argnums=3)(model.unlabelled(),
-                                                                        u[:1100], jnp.zeros(2), DT)
+    # the program of the record's own length, dt a value as in `simulate`
+    y_ref, x_ref, status = jax.jit(simulate_status)(model.unlabelled(), u[:1100], jnp.zeros(2),
+                                                    np.float64(DT))
     assert y.shape == (1100,) and x.shape == (1100, 2) and int(status) == 0
     np.testing.assert_allclose(np.asarray(y), np.asarray(y_ref), rtol=1e-13, atol=0)
     np.testing.assert_allclose(np.asarray(x), np.asarray(x_ref), rtol=1e-13, atol=0)
@@ -479,6 +480,47 @@ def test_scores_new_settings_compile_nothing(noisy):
             out = mfmjax.scores(noisy, ST, h=h, N=N, M=M, h_max=3.15)
     assert names == []
     assert np.isfinite(float(out["E"]))
+
+
+def test_new_sampling_interval_compiles_nothing(noisy):
+    """dt is a value, like h: the same system sampled at 0.051 after 0.05 (600 samples; every
+    kernel still inside its bucket, the support of h = 3.1 needing 61 and 63 samples of 64)
+    compiles nothing in `identify`, `observe`, `simulate`, `search`, `scores`, `srivc`,
+    `output_error`, `step_response` or `cramer_rao` (before, each compiled again: 13
+    programs with `estimate`'s, which `test_estimate.py` checks). The new dt reaches the
+    programs: the Gram at 0.051 equals the NumPy twin's at 0.051 to 1e-12 relative (as in
+    `test_gram_equals_reference`), where the old dt would put it about 2 % off."""
+    import reference as R
+
+    from mfmjax._gram import gram, modulated_signals
+
+    mf, grid = ModulatingFunction(4, 5, 2.6), dict(n=(3,), m=[[1], [1]], N=(4,), M=(5,),
+                                                   h=(1.5, 3.1))
+
+    def calls(sig):
+        model = mfmjax.identify(sig, ST, mf)
+        dt = float(sig.dt)
+        out = [model, mfmjax.observe(model, sig).E, mfmjax.simulate(model, sig.u, dt=dt),
+               mfmjax.search(sig, **grid).row(0)["E"],
+               mfmjax.scores(sig, ST, h=2.6, N=4, M=5, h_max=3.15)["E"],
+               mfmjax.srivc(sig, model).theta,
+               mfmjax.output_error(sig, model, max_steps=30).theta,
+               mfmjax.step_response(model).y,
+               mfmjax.cramer_rao(model, sig.u, np.zeros(3), dt=dt, sigma=0.02)[1],
+               gram(modulated_signals(sig, ST, mf))]
+        return jax.block_until_ready(out)
+
+    calls(noisy)
+    other = simulated_experiment(third_order_two_input(), dt=0.051, n_samples=600, seed=5,
+                                 noise_std=0.02)
+    with compiles() as names:
+        got = calls(other)
+    assert names == [], f"a new dt compiled {names}"
+    G, y, u = np.asarray(got[-1]), np.asarray(other.y), np.asarray(other.u)
+    ref = R.gram(y, u, 0.051, 3, (1, 1), 4, 5, 2.6, other.intersample, (0.0, 0.0))
+    assert np.max(np.abs(G - ref)) <= 1e-12 * np.max(np.abs(ref))
+    old = R.gram(y, u, DT, 3, (1, 1), 4, 5, 2.6, other.intersample, (0.0, 0.0))
+    assert np.max(np.abs(G - old)) > 1e-3 * np.max(np.abs(ref))  # the check can tell them apart
 
 
 def test_online_identifier_compiles_its_programs_once_per_run(monkeypatch):
