@@ -264,7 +264,9 @@ class Signals(eqx.Module):
 
     - `y`: output samples, shape (T,).
     - `u`: input samples, shape (T, K) (or (T,) for K = 1, or None for K = 0).
-    - `dt`: sampling interval, or give `t` (a uniform, increasing time column) instead.
+    - `dt`: sampling interval, or give `t` (a uniform, increasing time column) instead. Kept
+      as a float64 value (a NumPy scalar, which behaves as a float), not a compile-time
+      constant: a record at a new dt compiles nothing new.
     - `t0`: time of the first sample (ignored when `t` is given).
     - `intersample`: per input, `"zoh"` (piecewise constant, e.g. a digital controller's
       output) or `"foh"` (piecewise linear). Default `"foh"`.
@@ -469,9 +471,10 @@ class Signals(eqx.Module):
             for attr in ("dt", "intersample", "smooth", "offset", "output_rule", "output_name",
                          "input_names"):
                 if getattr(r, attr) != getattr(first, attr):
+                    show = (lambda v: f"{float(v):g}") if attr == "dt" else repr  # noqa: E731
                     raise ValueError(f"Signals.concatenate(): record {i} has {attr}="
-                                     f"{getattr(r, attr)!r}, record 0 has "
-                                     f"{getattr(first, attr)!r}; experiments must match")
+                                     f"{show(getattr(r, attr))}, record 0 has "
+                                     f"{show(getattr(first, attr))}; experiments must match")
             if not np.array_equal(np.asarray(r.delays), np.asarray(first.delays)):
                 raise ValueError(f"Signals.concatenate(): record {i} has other delays than "
                                  "record 0; experiments of one system share their delays")
