@@ -121,7 +121,7 @@ def identify_core(signals, structure, mf, eta, length: int, end=None,
     for k in range(K):
         bs.append(theta[pos : pos + structure.m[k] + 1] / div)
         pos += structure.m[k] + 1
-    offset = theta[pos] / div if signals.offset else jnp.asarray(0.0)
+    offset = theta[pos] / div if signals.offset else jnp.zeros((), jnp.float64)  # not weak-typed
     J = mf.h ** (mf.N + mf.M + 1) * jnp.sqrt(quad)  # undo the common factor (see _gram)
     a = theta[: n + 1] / div
     status = status.astype(jnp.int32)

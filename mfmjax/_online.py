@@ -375,11 +375,15 @@ class OnlineOutputs(eqx.Module):
 
 
 def _window_signals(config: OnlineConfig, y, u, t0: float) -> Signals:
+    """A window's record as the compiled programs take it: checked under the signals' names
+    (a NaN is reported by column name), then unlabelled, so other names compile nothing (the
+    labelled window went into `_predict` and `_score`: a run under other column names compiled
+    them again)."""
     return Signals(
         y, u, dt=config.dt, t0=t0, intersample=config.intersample, delays=config.delays,
         offset=config.offset, smooth=config.smooth, output_rule=config.output_rule,
         output_name=config.output_name, input_names=config.input_names,
-    )
+    ).unlabelled()
 
 
 def _plan_for(config: OnlineConfig, intervals: int):

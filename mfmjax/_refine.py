@@ -258,7 +258,8 @@ def refine(
     z0 = {key: device(_logit(x0[key], *box[key])) for key in vary}
     import optimistix as optx  # here: importing it costs 0.13 s at every CLI start
 
-    solver = optx.BFGS(rtol=rtol, atol=atol)
+    # the tolerances as values: Python floats would be static, a program per tolerance
+    solver = optx.BFGS(rtol=np.float64(rtol), atol=np.float64(atol))
     # optimistix's first step evaluates the objective at z0 only (and keeps z0); every step
     # returns the last accepted iterate with its value in `state.f_info` (no program of its own)
     z, state = _bfgs_step(solver, objective, z0, _bfgs_init(solver, objective, z0))

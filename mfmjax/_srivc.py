@@ -469,7 +469,7 @@ def srivc_many(records, models, *, n_max: int | None = None, max_iter: int = 30,
         live.append(i)
         shapes.append((n, w))
     outs = map_pairs(padded_fit, [records[i] for i in live], starts, device=False,
-                     bucket=bucket, max_iter=max_iter, tol=tol)
+                     bucket=bucket, max_iter=np.int32(max_iter), tol=np.float64(tol))  # values
     fits = [None] * len(models)
     for i, out, shape in zip(live, outs, shapes):
         fits[i] = None if out is None else _fit(records[i], models[i], out, shape)

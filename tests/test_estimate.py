@@ -222,6 +222,22 @@ def test_estimate_batch_compiles_nothing_for_another_sampling_interval(batch_20d
     assert np.all(np.abs(mean - np.array([2.0, 3.0, 1.0])) < 4 * se), (mean, se)
 
 
+def test_estimate_batch_new_iteration_settings_compile_nothing(batch_20db):
+    """SRIVC's max_iter and tol are values in `estimate`'s batched stages too (they were static
+    arguments of the chunk program: each new value compiled it again, 1.2-1.3 s). They reach
+    the program: with tol = 1e-7 some record stops an iteration earlier, so its parameters
+    differ from those at 1e-8, by less than the looser tolerance (1e-7 relative)."""
+    from jaxlog import compiles
+
+    records, ests, _ = batch_20db
+    with compiles() as names:
+        loose = mfmjax.estimate(records, **SMALL, max_iter=25, tol=1e-7)
+    assert names == [], names
+    assert [(e.model.n, e.method) for e in loose] == [(e.model.n, e.method) for e in ests]
+    moved = [np.max(np.abs(_params(a.model) / _params(b.model) - 1)) for a, b in zip(loose, ests)]
+    assert 0 < max(moved) < 1e-7, moved
+
+
 def test_estimate_batch_compiles_nothing_for_other_structures(batch_20db):
     """No program is compiled per model structure: a batch of another system (first order,
     the same record layout) chooses n = 1 where the first batch chose n = 2, and compiles

@@ -523,6 +523,26 @@ def test_new_sampling_interval_compiles_nothing(noisy):
     assert np.max(np.abs(G - old)) > 1e-3 * np.max(np.abs(ref))  # the check can tell them apart
 
 
+def test_a_model_of_the_same_orders_from_any_source_compiles_nothing(record):
+    """A model of the same orders compiles nothing, whether identified, built from coefficients
+    or loaded: `identify` returned a weak-typed float for a model without an offset term
+    (`jnp.asarray(0.0)` in its program), the other sources a float64, and the weak type is
+    part of a program's key, so observing a given model after an identified one compiled the
+    observer again (and `moving_final_states`, `cramer_rao` and `frequency_response` theirs).
+    The same coefficients give the same E (the same program on the same values)."""
+    model = mfmjax.identify(record, ST, ModulatingFunction(4, 5, 2.6))
+    window = (10.0, 50.0)
+    first = mfmjax.observe(model, record, window)
+    mfmjax.frequency_response(model)
+    given = mfmjax.Model.from_coefficients(np.asarray(model.a), [np.asarray(b) for b in model.b],
+                                           intersample=record.intersample)
+    with compiles() as names:
+        again = mfmjax.observe(given, record, window)
+        mfmjax.frequency_response(given)
+    assert names == [], f"a given model compiled {names}"
+    assert float(again.E) == float(first.E)
+
+
 def test_online_identifier_compiles_its_programs_once_per_run(monkeypatch):
     """Identification windows are padded to `OnlineConfig.window_bound`: with n_start = 8 and
     n_reident = 6 both windows fit the 8-interval record (the 6-interval one does not fit in
@@ -546,6 +566,32 @@ def test_online_identifier_compiles_its_programs_once_per_run(monkeypatch):
     assert len(windows) >= 4  # several identifications
     for program in ("jit(evaluate_chunk)", "jit(_score)", "jit(_predict)"):
         assert names.count(program) <= 1, (program, names.count(program), windows)
+
+
+def test_online_identifier_new_names_and_t0_compile_nothing():
+    """Column names and t0 are labels for the on-line identifier too: a run under other names
+    and another start time, after a run of the same configuration, compiles nothing (its
+    windows went into `_predict` and `_score` labelled with the names: 2 programs, 1.6 s,
+    each time the names changed, in the CLI with every other set of column names). The same
+    data give the same models."""
+    t, y, u, _ = switching_experiment()
+
+    def run(names, t0):
+        cfg = OnlineConfig(dt=1.0, n_inputs=2, n=(2,), intersample=("foh", "zoh"), n_reident=6,
+                           output_name=names[0], input_names=names[1:])
+        ident = OnlineIdentifier(cfg)
+        for c0 in range(0, len(t), 250):
+            ident.update(t0 + t[c0 : c0 + 250], y[c0 : c0 + 250], u[c0 : c0 + 250])
+        return ident
+
+    first = run(("y", "u1", "u2"), 0.0)
+    with compiles() as names:
+        other = run(("temperature", "valve", "pump"), 1000.0)
+    assert names == [], f"new names and t0 compiled {names}"
+    assert len(other.models) == len(first.models) >= 2
+    for a, b in zip(first.models, other.models):
+        np.testing.assert_array_equal(np.asarray(a["a"]), np.asarray(b["a"]))
+    assert other.model().output_name == "temperature" and other.mse() == first.mse()
 
 
 def test_output_error_new_step_limit_compiles_nothing(noisy):
@@ -616,6 +662,20 @@ def test_refine_new_record_length_inside_a_bucket_compiles_nothing(noisy, monkey
     for key in ("h", "N"):
         assert got.settings[key] == pytest.approx(ref.settings[key], rel=1e-10), key
     assert got.value == pytest.approx(ref.value, rel=1e-10)
+
+
+def test_refine_new_tolerances_compile_nothing(noisy):
+    """`refine`'s rtol and atol are values: optimistix keeps them as fields of the BFGS solver,
+    a static argument of the step programs, so as Python floats every new tolerance compiled
+    its three BFGS programs again (4.3-4.6 s). They reach the program: the looser tolerance
+    stops in fewer steps (3 against 19 here), both converged."""
+    start = mfmjax.identify(noisy, ST, ModulatingFunction(4, 5, 2.6))
+    kw = dict(vary=("h", "N"), bounds={"h": (0.7, 4.0)}, max_steps=40)  # as the test above
+    tight = mfmjax.refine(noisy, start, rtol=1e-3, atol=1e-5, **kw)
+    with compiles() as names:
+        loose = mfmjax.refine(noisy, start, rtol=0.1, atol=0.1, **kw)
+    assert names == [], f"new tolerances compiled {names}"
+    assert tight.converged and loose.converged and loose.steps < tight.steps
 
 
 def test_first_calls_run_no_eager_programs(noisy, tmp_path):

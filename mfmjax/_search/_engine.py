@@ -94,7 +94,7 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
              for k in range(K)]
         return dict(
             theta=theta, a=norm[: n_max + 1], b=jnp.stack(b, 0) if K else jnp.zeros((0, n_max + 1)),
-            offset=norm[p - 1] if sig.offset else jnp.asarray(0.0),
+            offset=norm[p - 1] if sig.offset else jnp.zeros((), jnp.float64),
             J=J_rel,
             J_raw=h ** (N + M + 1) * jnp.sqrt(quad), cond=cond, status=status,
         )
