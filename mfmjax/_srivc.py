@@ -332,6 +332,10 @@ def padded_fit(signals: Signals, c: dict, *, max_iter: int, tol: float,
     if n_samples is None and not (_b.is_traced(y) or _b.is_traced(u)):
         y, u = (edge_padded(np.asarray(x), record_bucket(T) - T) for x in (y, u))
     valid = np.int32(T) if n_samples is None else n_samples
+    # one type for the settings, whoever calls: a Python int is a weak int64 to `jax.jit`,
+    # the batched stages' np.int32 another program
+    max_iter = max_iter if _b.is_traced(max_iter) else np.int32(max_iter)
+    tol = tol if _b.is_traced(tol) else np.float64(tol)
     return _program(tuple(signals.intersample), signals.offset)(
         c, y, u, valid, max_iter, tol, signals.dt)
 
