@@ -227,7 +227,7 @@ def check_identify(signals, structure, mf, eta=None, delay_max=None) -> None:
     _signals_arg("identify", signals)
     if not isinstance(mf, ModulatingFunction):
         raise TypeError(f"identify(): mf must be a ModulatingFunction, got {type(mf).__name__}")
-    min_support("identify", mf.h, signals.dt, "mf.h")
+    min_support("identify", mf.h, signals.host_dt, "mf.h")
     _eta("identify", eta)
     if delay_max is not None:
         number("identify", "delay_max", delay_max, lo=0)
@@ -251,7 +251,7 @@ def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_wi
     hs = _grid_numbers(fn, "h", h, fix="give modulating-function widths in the record's time "
                        "unit")  # the sign is checked by the grid builder
     if min(hs) > 0:
-        min_support(fn, np.asarray(hs), signals.dt)
+        min_support(fn, np.asarray(hs), signals.host_dt)
     K = signals.n_inputs
     if m is not None:
         if isinstance(m, (str, bytes)) or not isinstance(m, (list, tuple)):
@@ -301,7 +301,7 @@ def check_scores(signals, structure, *, h, N, M, delays, eta, validate, observer
             number(fn, name, val, lo=1)
     if not is_traced(h):
         number(fn, "h", h, lo=0, lo_open=True)
-        min_support(fn, h, signals.dt)
+        min_support(fn, h, signals.host_dt)
     if delays is not None and not is_traced(delays):
         array(fn, "delays", delays, ndim=(0, 1))
     _eta(fn, eta)
@@ -352,7 +352,7 @@ def check_refine(signals, *, score, vary, bounds, validate, observer_window, max
             for side, b in zip(("lo", "hi"), val):
                 array(fn, f"bounds[{key!r}] {side}", b, ndim=(0, 1), fix="give finite bounds")
             if key == "h":
-                min_support(fn, val[0], signals.dt, "bounds['h'] lo")
+                min_support(fn, val[0], signals.host_dt, "bounds['h'] lo")
     window(fn, "validate", validate)
     if observer_window is not None:
         number(fn, "observer_window", observer_window, lo=0, lo_open=True)

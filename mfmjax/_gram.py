@@ -90,7 +90,7 @@ def static_span(signals: Signals, mf: ModulatingFunction, delay_max: float | Non
 def compiled_length(signals: Signals, mf: ModulatingFunction, delay_max: float | None = None) -> int:
     """Static kernel length of a program for these settings: the bucket (`kernel_bucket`) of the
     length that h (or h_max when h is traced) plus the delays (or delay_max) needs."""
-    return kernel_bucket(kernel_length(static_span(signals, mf, delay_max), signals.dt))
+    return kernel_bucket(kernel_length(static_span(signals, mf, delay_max), signals.host_dt))
 
 
 def modulated_signals(
@@ -157,7 +157,7 @@ def feedthrough_corrections(
     **Returns:** list of (k, Delta_k (T, n+1)) for those inputs (empty if none).
     """
     if length is None:
-        length = kernel_length(static_span(signals, mf, delay_max), signals.dt)
+        length = kernel_length(static_span(signals, mf, delay_max), signals.host_dt)
     return [
         (k, feedthrough_columns(signals, k, structure.n, mf, length))
         for k in range(signals.n_inputs)
@@ -202,7 +202,7 @@ def check_record_length(signals: Signals, mf: ModulatingFunction, n_params: int)
     if isinstance(mf.h, jax.core.Tracer) or isinstance(signals.delays, jax.core.Tracer):
         return
     span = float(np.max(np.asarray(mf.h))) + float(np.max(np.asarray(signals.delays), initial=0.0))
-    first = kernel_length(span, signals.dt) - 1  # support_samples, on the host (as plan_search)
+    first = kernel_length(span, signals.host_dt) - 1  # support_samples, on the host (as plan_search)
     need = max(MIN_VALID, 2 * n_params)
     if signals.n_samples - first < need:
         raise ValueError(

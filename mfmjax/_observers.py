@@ -139,7 +139,7 @@ def validation_window(signals: Signals, window, observer_window, n: int, fn: str
     """(start, length, observer length) in samples of a window (t0, t1) (default: the record)
     and of its initial-state observer window (default: the whole window), checked at the
     public boundary for an order-`n` observer; `name` is the argument the errors name."""
-    T, dt, t0 = signals.n_samples, signals.dt, signals.t0
+    T, dt, t0 = signals.n_samples, signals.host_dt, signals.t0
     if window is None:
         v0, v1 = 0, T - 1
     else:
@@ -202,7 +202,7 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
     if observer_window is not None:
         observer_window = _b.number("observe", "observer_window", observer_window, lo=0,
                                     lo_open=True, fix="give a length in the record's time unit")
-        ob = round(observer_window / signals.dt) + 1
+        ob = round(observer_window / signals.host_dt) + 1
         if not MIN_WINDOW <= ob <= length:
             raise ValueError(
                 f"observe(): observer_window={observer_window:g} must hold {MIN_WINDOW} to "
@@ -263,18 +263,18 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
                         f"{type(signals).__name__}")
     T_ob = _b.number("moving_final_states", "T_ob", T_ob, lo=0, lo_open=True,
                      fix="give the observer length in the record's time unit")
-    length = round(T_ob / signals.dt) + 1
+    length = round(T_ob / signals.host_dt) + 1
     times = _b.array("moving_final_states", "times", times, ndim=(0, 1))
     if times.size == 0:
         raise ValueError("moving_final_states(): times is empty; give at least one time t_j")
     times = np.atleast_1d(np.asarray(times, dtype=np.float64))  # NumPy: no eager programs
-    ends = np.round((times - signals.t0) / signals.dt).astype(np.int32)
+    ends = np.round((times - signals.t0) / signals.host_dt).astype(np.int32)
     e_np = [int(v) for v in ends]
     if min(e_np) - (length - 1) < 0 or max(e_np) > signals.n_samples - 1:
         raise ValueError(
             "moving_final_states(): every t_j must have T_ob of data before it inside the record"
         )
-    _window(model, signals, (signals.t0, signals.t0 + (length - 1) * signals.dt),
+    _window(model, signals, (signals.t0, signals.t0 + (length - 1) * signals.host_dt),
             "moving_final_states")
     return _moving(simulation_form(model), signals.y, signals.u, signals.dt,
                    jax.device_put(ends), length)

@@ -287,6 +287,10 @@ class Signals(eqx.Module):
     u: jax.Array
     delays: jax.Array
     dt: np.float64  # a value (NumPy float64 on the host, traced in programs): no program per dt
+    # the same dt as a host number, for host decisions (kernel and window lengths) when `dt` is
+    # traced: records stacked for `jax.vmap` (stacking needs equal static fields, so equal dt);
+    # None in `unlabelled` copies, which programs take
+    dt_host: float | None = eqx.field(static=True)
     t0: float = eqx.field(static=True)
     intersample: tuple[str, ...] = eqx.field(static=True)
     smooth: tuple[bool, ...] = eqx.field(static=True)
@@ -415,7 +419,7 @@ class Signals(eqx.Module):
         if _concrete(y) and _concrete(u):
             _refuse_output_as_input(np.asarray(y), np.asarray(u), output_name, names)
         self.y, self.u, self.delays = y, u, delays
-        self.dt, self.t0 = np.float64(dt), float(t0)
+        self.dt, self.dt_host, self.t0 = np.float64(dt), float(dt), float(t0)
         note = ""
         if offset is None:
             offset, note = offset_needed(y, u, names)
@@ -431,7 +435,7 @@ class Signals(eqx.Module):
         another operating point compiled `identify` and the search's chunk again).
         `changes`: other fields replaced in the same copy (e.g. padded y and u)."""
         K = self.n_inputs
-        return replace_fields(self, t0=0.0, output_name="y", offset_note="",
+        return replace_fields(self, t0=0.0, output_name="y", offset_note="", dt_host=None,
                               input_names=tuple(f"u{k + 1}" for k in range(K)), **changes)
 
     def window(self, t0: float, t1: float) -> Signals:
@@ -499,6 +503,17 @@ class Signals(eqx.Module):
     @property
     def duration(self) -> float:
         return (self.n_samples - 1) * self.dt
+
+    @property
+    def host_dt(self) -> float:
+        """dt as a host number for host decisions (kernel and window lengths in samples): the
+        value, or under `jax.vmap` of stacked records the number they were built with."""
+        if not _b.is_traced(self.dt):
+            return float(self.dt)
+        if self.dt_host is None:
+            raise ValueError("Signals: dt is traced and no host value is known; build the "
+                             "Signals with a number for dt outside the traced function")
+        return self.dt_host
 
     @property
     def t(self) -> jax.Array:

@@ -126,6 +126,30 @@ def test_vmap_over_datasets():
         assert np.allclose(np.asarray(batched.a[k]), np.asarray(eager.a), rtol=1e-9, atol=0)
 
 
+def test_vmap_over_stacked_signals():
+    """Records stacked as `Signals` (one dt, an explicit offset choice) vmap through `identify`
+    (delays traced: their bound given) and `observe`: dt is a traced value there, and the host
+    decisions (kernel and window lengths) read the number the records were built with
+    (`Signals.dt_host`). Equal to one record at a time within the rounding bound of the test
+    above (1e-9)."""
+    true = third_order_two_input()
+    sigs = [simulated_experiment(true, dt=0.01, n_samples=1200, seed=s, noise_std=0.01)
+            for s in range(3)]
+    sigs = [Signals(s.y, s.u, dt=0.01, intersample=("foh", "zoh"), offset=False) for s in sigs]
+    st, mf = Structure(3, (1, 0)), ModulatingFunction(4, 5, 2.0)
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *sigs)
+
+    def f(sig):
+        model = mfmjax.identify(sig, st, mf, delay_max=0.0)
+        return model.a, mfmjax.observe(model, sig).E
+
+    a, E = jax.vmap(f)(stacked)
+    for k, s in enumerate(sigs):
+        one = mfmjax.identify(s, st, mf)
+        assert np.allclose(np.asarray(a[k]), np.asarray(one.a), rtol=1e-9, atol=0)
+        assert float(E[k]) == pytest.approx(float(mfmjax.observe(one, s).E), rel=1e-9)
+
+
 def test_no_recompile_second_call():
     sig = simulated_experiment(third_order_two_input(), dt=0.01, n_samples=1200)
     st = Structure(3, (1, 0))
