@@ -205,9 +205,11 @@ def estimate(
                                      notes=o.notes + (text,))
             warnings.warn(f"estimate(){which}: {text}", stacklevel=2)
     for r, o in enumerate(outs):
-        flags = int(o.model.status) & FLAGGED
+        flags = (int(o.model.status) | _search_flags(o.search)) & FLAGGED
         if flags:  # every candidate was flagged, or the stage's model is: not a usable answer
             which = "" if single else f" (record {r})"
+            o = replace_fields(o, model=replace_fields(o.model, status=np.int32(
+                int(o.model.status) | flags)))  # kept with the model (summary, JSON, CLI)
             text = (f"the returned model is flagged ({describe(flags)}): it is not a usable "
                     "model of these data; check the data (a level that swamps the variation: "
                     "subtract it; a constant input: drop it) and the grid")
@@ -220,6 +222,18 @@ def estimate(
                           "estimate is its best iterate and its standard errors are not "
                           "trustworthy: check the grid or raise max_iter", stacklevel=2)
     return outs[0] if single else tuple(outs)
+
+
+def _search_flags(res: SearchResult) -> int:
+    """The best candidate's flags where every candidate of the search is flagged, else 0: no
+    candidate is a model of the data (a constant input: `no_excitation` on every row), so no
+    stage started from one is, however its own fit looks (SRIVC and output error from such a
+    start came back at 1e12 with status ok and converged on a heater record whose lamp never
+    moved)."""
+    status = np.asarray(res.columns["status"])[np.asarray(res.rank)] if len(res) else None
+    if status is None or not np.all(status.astype(np.int64) & int(FLAGGED)):
+        return 0
+    return int(status[0]) & int(FLAGGED)
 
 
 _REHEARSED: set = set()  # stage layouts whose programs this process has compiled

@@ -492,3 +492,17 @@ def test_estimate_says_when_its_model_is_flagged():
         est = mfmjax.estimate(sig, h=2.0, n=(1,), N=3, M=3, m=[[0]])
     assert not est.converged
     assert "NOT USABLE: the model is flagged" in est.summary()
+
+
+def test_estimate_flags_a_record_whose_input_never_moves():
+    """An input constant over the record (a heater's lamp at 9 V throughout): every candidate
+    of the search is no_excitation, and SRIVC and output error from the best of them came back
+    with a gain of 1e12, status ok and converged (a practitioner's CSV, 2026-11-27). The
+    search's flags now stay with the returned model: flagged, not converged, warned, NOT
+    USABLE (as when the stage's own model is flagged, the test above)."""
+    clean = simulated_experiment(TRUE, dt=DT, n_samples=600, seed=7, noise_std=0.01)
+    sig = mfmjax.Signals(clean.y, np.full(600, 9.0), dt=DT, intersample="zoh", offset=True)
+    with pytest.warns(UserWarning, match=r"the returned model is flagged \(.*no_excitation"):
+        est = mfmjax.estimate(sig, h=2.0, n=(1,), N=3, M=3, m=[[0]])
+    assert not est.converged and int(est.model.status) & int(mfmjax.Status.NO_EXCITATION)
+    assert "NOT USABLE: the model is flagged" in est.summary()
