@@ -160,7 +160,17 @@ def _validation_report(args, sig, model) -> dict | None:
         raise ValueError(f"--validate-window {w[0]:g},{w[1]:g} is too short: its first 20 % (the "
                          f"initial-state observer) needs at least {MIN_WINDOW} samples; widen it "
                          f"to at least {5 * (MIN_WINDOW - 1) * sig.dt:g}")
-    obs = mfmjax.observe(model, sig, w, observer_window=0.2 * (w[1] - w[0]))
+    try:
+        obs = mfmjax.observe(model, sig, w, observer_window=0.2 * (w[1] - w[0]))
+    except ValueError as err:  # the model's failure, not the user's: it is still printed
+        why = {"overflows float64": "the model's response overflows float64 on this window (an "
+                                    "unstable model: see its status)",
+               "not observable": "the model's state is not observable on this window"}
+        failed = [text for key, text in why.items() if key in str(err)]
+        if not failed:
+            raise
+        return {"window": list(w), "fit": None, "E": None, "observer_window": 0.2 * (w[1] - w[0]),
+                "overlaps_identification": bool(overlap), "failed": failed[0]}
     a = round((w[0] - sig.t0) / sig.dt)
     y = np.asarray(sig.y)[a: a + obs.y_sim.shape[0]]
     return {"window": list(w), "fit": float(mfmjax.fit_percent(y, obs.y_sim)),
@@ -169,7 +179,9 @@ def _validation_report(args, sig, model) -> dict | None:
 
 
 def _print_validation(v: dict | None) -> None:
-    if v is not None:
+    if v is not None and v.get("failed"):
+        print(f"validation on [{v['window'][0]:g}, {v['window'][1]:g}]: none, {v['failed']}")
+    elif v is not None:
         print(f"validation on [{v['window'][0]:g}, {v['window'][1]:g}]: fit {v['fit']:.2f} %  "
               f"E {v['E']:.4e}  (state from the observer over the first "
               f"{v['observer_window']:g}" + (
