@@ -253,6 +253,19 @@ def _offset_note(sig) -> None:
         print(f"note: {sig.offset_note}", file=sys.stderr)
 
 
+def _names_note(model, sig) -> None:
+    """On stderr after the results: the saved model's column names differ from the data's (a
+    heating system's model validated on a heat exchanger's columns gave fit -4857 % with
+    nothing said). Models without names of their own (y, u1, ...) are not compared."""
+    default = model.output_name == "y" and model.input_names == tuple(
+        f"u{k + 1}" for k in range(model.n_inputs))
+    if not default and (model.output_name, tuple(model.input_names)) != (
+            sig.output_name, tuple(sig.input_names)):
+        print(f"note: the model was identified from {model.output_name} <- "
+              f"{', '.join(model.input_names)}; these data are {sig.output_name} <- "
+              f"{', '.join(sig.input_names)}: check the columns and their order", file=sys.stderr)
+
+
 def _cmd_identify(args):
     import mfmjax
 
@@ -735,6 +748,7 @@ def _cmd_validate(args):
         print(f"E (eq. 17)    {res['E']:.6e}")
         print(f"fit           {res['fit_note'] if constant else f'{fit:.2f} %'}")
         print("x0            " + " ".join(f"{v:.6e}" for v in res["x0"]))
+    _names_note(model, sig)
 
 
 def _plot_validation(sig, k0, y, y_sim, fit, path):
@@ -793,6 +807,7 @@ def _cmd_report(args):
     print(note)
     print(f"wrote {', '.join(os.path.basename(f) for f in files.values())} and report.json "
           f"to {args.o}")
+    _names_note(model, sig)
 
 
 def main(argv=None) -> int:

@@ -138,6 +138,25 @@ def test_identify_prints_an_unstable_model_whose_validation_fails(tmp_path, caps
         "response overflows float64", "state is not observable"))
 
 
+def test_validate_and_report_say_when_the_columns_differ_from_the_models(csv_file, tmp_path,
+                                                                         capsys):
+    """A saved model names its columns; `validate` and `report` on data whose columns are
+    named otherwise (here the inputs swapped) say so on stderr after their results (a heating
+    system's model validated on a heat exchanger's columns gave fit -4857 % with nothing
+    said). The same columns: no note."""
+    model_path = tmp_path / "model.json"
+    assert main(["identify", str(csv_file), *ARGS, "--save", str(model_path)]) == 0
+    capsys.readouterr()
+    common = [str(csv_file), "--output", "temp", "--time", "t", "--model", str(model_path)]
+    assert main(["validate", *common, "--inputs", "u1,u2"]) == 0
+    assert "note:" not in capsys.readouterr().err
+    assert main(["validate", *common, "--inputs", "u2,u1"]) == 0
+    assert ("note: the model was identified from temp <- u1, u2; these data are temp <- u2, u1"
+            in capsys.readouterr().err)
+    assert main(["report", *common, "--inputs", "u2,u1", "-o", str(tmp_path / "rep")]) == 0
+    assert "these data are temp <- u2, u1" in capsys.readouterr().err
+
+
 def test_identify_save_and_validate(csv_file, tmp_path, capsys):
     model_path = tmp_path / "model.json"
     assert main(["identify", str(csv_file), *ARGS, "--save", str(model_path)]) == 0
