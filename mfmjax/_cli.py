@@ -657,6 +657,10 @@ def _cmd_search(args):
         raise _UserError("--holdout is the share held back by --estimate; add --estimate")
     report = None
     ident = _identify_part(args, sig)
+    held_back = (args.validate_window and ident is not None and not args.validate
+                 and not args.estimate and args.score != "J")
+    if held_back:  # the ranking must not see the window the validation line calls held back
+        kwargs["validate"] = ident
     if args.estimate:  # mfmjax.estimate's path: its search table, ranked on held-back data
         kwargs.pop("score")
         kwargs.pop("validate", None)
@@ -687,6 +691,10 @@ def _cmd_search(args):
     validation = _validation_report(args, sig, report["model"] if report else result.best())
     if not args.estimate:  # estimate's notes say it, with its own decision
         _offset_note(sig)  # after the work: a user error stays one line
+    if held_back:
+        print(f"note: candidates ranked by {args.score} on --identify-window {ident[0]:g},"
+              f"{ident[1]:g}, not on the --validate-window data (give --validate to rank on "
+              "another window)", file=sys.stderr)
     if args.json:
         out = result.to_dict(top=args.top)
         if validation:
