@@ -523,6 +523,14 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
                 del oes[r]
                 fell[r] += ("; output error did not converge either, so SRIVC's best iterate "
                             "is returned")
+        for r in [r for r in oe_rec if r not in fell and methods[r] == "srivc + output error"]:
+            if (oes[r] is None or not oes[r].converged) and fits.get(r) is not None \
+                    and fits[r].converged:  # a converged fit over an unconverged polish
+                methods[r] = "srivc"
+                del oes[r]
+                fell[r] = ("the output-error polish, chosen on the held-back data, did not "
+                           "converge on all estimation data: the converged SRIVC fit is "
+                           "returned")
     out = []
     for r in range(R):
         tr, b, method = tried[r], best[r], methods[r]

@@ -1,9 +1,11 @@
 """`estimate`: search -> SRIVC (-> output error) in one call, on a noisy record (issue 14)."""
 
+import os
 import warnings
 
 import numpy as np
 import pytest
+from conftest import SHARED
 
 import mfmjax
 from mfmjax import Model
@@ -506,3 +508,20 @@ def test_estimate_flags_a_record_whose_input_never_moves():
         est = mfmjax.estimate(sig, h=2.0, n=(1,), N=3, M=3, m=[[0]])
     assert not est.converged and int(est.model.status) & int(mfmjax.Status.NO_EXCITATION)
     assert "NOT USABLE: the model is flagged" in est.summary()
+
+
+@pytest.mark.skipif(not os.path.isdir(os.path.join(SHARED, "daisy-heat-exchanger")),
+                    reason="shared data not present")
+def test_estimate_keeps_a_converged_srivc_over_a_polish_that_does_not_converge():
+    """The DaISy heat exchanger at n = 2, m = 0: the output-error polish wins on the held-back
+    data, but on all estimation data it runs out of steps at a = (1.7e7, 7.6e7), a first-order
+    model in disguise (a pole at -6.5e7, standard errors of 1e13), which `estimate` returned,
+    flagged NOT CONVERGED, over a converged SRIVC fit (a practitioner's walkthrough). The
+    converged SRIVC fit is now returned, and a note says why."""
+    d = np.loadtxt(os.path.join(SHARED, "daisy-heat-exchanger", "exchanger.dat"))
+    sig = mfmjax.Signals(d[:, 2], d[:, 1], t=d[:, 0])
+    est = mfmjax.estimate(sig, n=(2,), m=[[0]], h=40.0, N=4, M=4)
+    assert est.method == "srivc" and est.converged and est.srivc.converged
+    assert any("the converged SRIVC fit is returned" in note for note in est.notes)
+    assert np.all(est.std_errors[:3] < np.abs(_params(est.model)))  # a_0, a_1, b_10: determined
+
