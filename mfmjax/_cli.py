@@ -22,6 +22,9 @@ class _UserError(Exception):
 
 
 class _Parser(argparse.ArgumentParser):
+    def __init__(self, *args, **kwargs):  # no abbreviations: `--delay 2` was taken as --delays
+        super().__init__(*args, **{"allow_abbrev": False, **kwargs})
+
     def error(self, message):  # one line, exit 2, no usage dump
         raise _UserError(f"{self.prog}: {message}")
 

@@ -106,6 +106,12 @@ def test_option_errors_are_one_line_exit_2(files, capsys, command, option, value
     _one_line_error(capsys, 2, _set(args, option, value), match)
 
 
+def test_abbreviated_options_are_refused(files, capsys):
+    """argparse took `--delay 2` as `--delays 2` (a prefix): an option is spelt out or refused."""
+    _one_line_error(capsys, 2, ["identify", files["rec"], *IDENT, "--delay", "2"],
+                    "unrecognized arguments: --delay 2")
+
+
 @pytest.mark.parametrize("value", ["inf", "nan", "-1", "0"])
 def test_dt_option_finite_and_positive(files, capsys, value):
     args = ["identify", files["rec"], *IDENT]
