@@ -157,23 +157,22 @@ def _validation_report(args, sig, model) -> dict | None:
     w = _record_window(args.validate_window, "validate-window", sig)
     ident = _identify_part(args, sig)
     overlap = ident is None or (w[0] < ident[1] and ident[0] < w[1])
-    from ._observers import MIN_WINDOW
+    from ._observers import MIN_WINDOW, observation
+    from ._status import Status
 
     if round(0.2 * (w[1] - w[0]) / sig.dt) + 1 < MIN_WINDOW:  # the observer's 20 %
         raise ValueError(f"--validate-window {w[0]:g},{w[1]:g} is too short: its first 20 % (the "
                          f"initial-state observer) needs at least {MIN_WINDOW} samples; widen it "
                          f"to at least {5 * (MIN_WINDOW - 1) * sig.dt:g}")
-    try:
-        obs = mfmjax.observe(model, sig, w, observer_window=0.2 * (w[1] - w[0]))
-    except ValueError as err:  # the model's failure, not the user's: it is still printed
-        why = {"overflows float64": "the model's response overflows float64 on this window (an "
-                                    "unstable model: see its status)",
-               "not observable": "the model's state is not observable on this window"}
-        failed = [text for key, text in why.items() if key in str(err)]
-        if not failed:
-            raise
+    # the model's failure is not the user's: the model is still printed, the status says why
+    obs = observation(model, sig, w, observer_window=0.2 * (w[1] - w[0]))
+    status = int(obs.status)
+    if status & (Status.OVERFLOW | Status.UNOBSERVABLE):
+        failed = ("the model's response overflows float64 on this window (an unstable model: "
+                  "see its status)" if status & Status.OVERFLOW else
+                  "the model's state is not observable on this window")
         return {"window": list(w), "fit": None, "E": None, "observer_window": 0.2 * (w[1] - w[0]),
-                "overlaps_identification": bool(overlap), "failed": failed[0]}
+                "overlaps_identification": bool(overlap), "failed": failed}
     a = round((w[0] - sig.t0) / sig.dt)
     y = np.asarray(sig.y)[a: a + obs.y_sim.shape[0]]
     return {"window": list(w), "fit": float(mfmjax.fit_percent(y, obs.y_sim)),

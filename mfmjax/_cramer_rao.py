@@ -3,7 +3,6 @@ r"""The Cramer-Rao bound of the free parameters for white output noise."""
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ._jit import jit
@@ -15,6 +14,7 @@ from ._output_error import (
     order_parameters,
     with_parameters,
 )
+from ._quadrature import edge_padded, record_bucket
 from ._simulate import forced_response
 
 
@@ -30,22 +30,27 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
     from ._boundary import check_cramer_rao
 
     check_cramer_rao(model, u, x0, dt, sigma, length)
-    u = jnp.asarray(u, dtype=jnp.float64).reshape(jnp.shape(u)[0], -1)
-    length = u.shape[0] if length is None else length
+    u = np.asarray(u, dtype=np.float64).reshape(np.shape(u)[0], -1)
+    length = u.shape[0] if length is None else int(length)
     names, theta0 = free_parameters(model)
     # one program per order n: the sensitivities of every coefficient of the numerators of
     # order n, then the structure's own columns (and x0's)
     base, theta, live = order_parameters(model, theta0)
     v = np.concatenate([theta, np.asarray(x0, dtype=np.float64)])
-    J = np.asarray(_sensitivities(base, u, v, np.float64(dt), int(length)))  # dt a value
+    # the experiment's length is a value: u padded to its record bucket (the last sample held),
+    # J over the bucket of `length`, its rows beyond `length` dropped here
+    bound = record_bucket(length)
+    u = edge_padded(u, max(record_bucket(u.shape[0]), bound) - u.shape[0])
+    J = np.asarray(_sensitivities(base, jax.device_put(u), v, np.float64(dt), bound))[:length]
     J = J[:, np.concatenate([live, theta.size + np.arange(model.n)])]
     return names, np.sqrt(np.diag(gauss_newton_covariance(J, sigma**2)))[: theta0.size]
 
 
 @jit
 def _sensitivities(model, u, v, dt, length: int):
-    """J = d y_sim / d(theta, x0) at v = (free parameters, x0): `jax.jacfwd` of the exact
-    simulation, one compiled program (eager, it dispatched every operation on its own)."""
+    """J = d y_sim / d(theta, x0) at v = (free parameters, x0) over the first `length` samples:
+    `jax.jacfwd` of the exact simulation, one compiled program (eager, it dispatched every
+    operation on its own)."""
     p = v.shape[0] - model.n
     sim = simulated_output(model, u, dt, 0, length)
     return jax.jacfwd(lambda w: sim(w[:p], w[p:]))(v)

@@ -197,6 +197,15 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
     Raises a clear error for unobservable windows and overflowing (unstable) responses; under
     an outer jit/vmap nothing can raise, and `status` (a `Status` bit set) says so instead.
     """
+    return checked(observation(model, signals, window, observer_window=observer_window),
+                   "observe")
+
+
+def observation(model: Model, signals: Signals, window=None, *,
+                observer_window: float | None = None) -> Observation:
+    """`observe` without raising on the model's failures: overflow and unobservability stay in
+    `status` (for callers that report them, e.g. the CLI's validation line). Bad arguments
+    still raise."""
     start, length = _window(model, signals, window, "observe")
     ob = None
     if observer_window is not None:
@@ -211,7 +220,7 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
     if _b.is_traced(signals.y) or _b.is_traced(signals.u):
         obs = _observe(simulation_form(model), signals.y, signals.u, signals.dt,
                        jnp.asarray(start, dtype=jnp.int32), length, ob)
-        return checked(obs, "observe")
+        return obs
     y, u, bound = padded_window(signals, start, length)
     # one program per order n (`simulation_form`), whatever the numerator orders
     obs = _observe(simulation_form(model), y, u, signals.dt, np.int32(start), bound,
@@ -220,7 +229,7 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
         y_sim = obs.y_sim[:length]
     else:
         y_sim = jax.device_put(np.asarray(obs.y_sim)[:length])  # host slice: no program
-    return checked(replace_fields(obs, y_sim=y_sim), "observe")
+    return replace_fields(obs, y_sim=y_sim)
 
 
 _observe = jit(observe_window)
@@ -276,14 +285,22 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
         )
     _window(model, signals, (signals.t0, signals.t0 + (length - 1) * signals.host_dt),
             "moving_final_states")
-    return _moving(simulation_form(model), signals.y, signals.u, signals.dt,
-                   jax.device_put(ends), length)
+    if _b.is_traced(signals.y) or _b.is_traced(signals.u):
+        y, u, bound = signals.y, signals.u, length
+    else:  # the record and the windows padded to their buckets: one program per bucket pair
+        bound = record_bucket(length)
+        y, u, _ = padded_window(signals, 1, length, bound)
+    return _moving(simulation_form(model), y, u, signals.dt, jax.device_put(ends),
+                   np.int32(length), bound)
 
 
 @jit
-def _moving(model, y, u, dt, ends, length):
+def _moving(model, y, u, dt, ends, length, bound: int):
+    """x(t_j) of eq. (16) from windows of `length` (a value) samples ending at `ends`, each
+    held in a `bound`-sample buffer (static) of which only the first `length` count."""
     forced = forced_response(model, u, dt)  # once for the record, not once per window
-    obs = jax.vmap(lambda e: observe_forced(forced, y, dt, e - (length - 1), length, None))(ends)
+    obs = jax.vmap(lambda e: observe_forced(forced, y, dt, e - (length - 1), bound, length,
+                                            None, length))(ends)
     return obs.x_final
 
 

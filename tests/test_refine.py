@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import reference as R
+from jaxlog import compiles
 
 import mfmjax
 from mfmjax import ModulatingFunction, Signals, Structure
@@ -140,7 +141,7 @@ def test_cramer_rao_against_numpy_finite_differences():
     u = np.stack([np.sin(0.7 * t), np.repeat(np.random.default_rng(0).normal(size=T // 20), 20)],
                  1)
     x0 = np.array([0.2, -0.1])
-    names, crb = mfmjax.cramer_rao(model, u, x0, dt=dt, sigma=0.05)
+    _, crb = mfmjax.cramer_rao(model, u, x0, dt=dt, sigma=0.05)
     # reference: scipy lsim, central differences over (a_0, a_1, b_10, b_20, x0)
     base = np.array([0.5, 1.5, 0.5, 0.3, *x0])
 
@@ -150,6 +151,15 @@ def test_cramer_rao_against_numpy_finite_differences():
     J = np.stack([(sim(base + e) - sim(base - e)) / 2e-6 for e in np.eye(6) * 1e-6], 1)
     ref = np.sqrt(np.diag(0.05**2 * np.linalg.inv(J.T @ J)))[:4]
     np.testing.assert_allclose(crb, ref, rtol=1e-5)  # FD truncation ~1e-12, lsim ~1e-9
+    # another experiment length in the record bucket (448 samples) is a value: 390 samples, or
+    # `length=390` of the 400, compile nothing and equal the first 390 rows' bound
+    ref = np.sqrt(np.diag(0.05**2 * np.linalg.inv(J[:390].T @ J[:390])))[:4]
+    with compiles() as names:
+        shorter = [mfmjax.cramer_rao(model, u[:390], x0, dt=dt, sigma=0.05)[1],
+                   mfmjax.cramer_rao(model, u, x0, dt=dt, sigma=0.05, length=390)[1]]
+    assert names == [], f"a new experiment length compiled {names}"
+    for crb in shorter:
+        np.testing.assert_allclose(crb, ref, rtol=1e-5)
 
 
 def test_cramer_rao_undetermined_parameters_are_infinite_and_shapes_checked():

@@ -262,19 +262,28 @@ def test_simulate_and_observers_new_structure_of_the_same_order_compile_nothing(
 def test_observe_new_record_and_window_lengths_inside_a_bucket_compile_nothing(record):
     """`observe` pads the window to its record bucket and the record to hold it: records of
     1200 and 1100 samples, and windows of 901 and 921 samples (bucket 1024) with or without an
-    observer window, share one program. Only the window's samples count: x0, the final state,
-    E and y_sim equal the unpadded program's (`observe_window` at the window's own length) to
-    the rounding of the Gramian's sums (equal shapes up to the padding: 1e-10 relative)."""
+    observer window, share one program; so do `moving_final_states`' windows (eq. 16) of 901
+    and 921 samples on them (before, each record length and T_ob compiled its program). Only
+    the window's samples count: x0, the final state, E and y_sim equal the unpadded program's
+    (`observe_window` at the window's own length) to the rounding of the Gramian's sums (equal
+    shapes up to the padding: 1e-10 relative)."""
     from mfmjax._observers import observe_window
 
     model = mfmjax.identify(record, ST, ModulatingFunction(4, 5, 2.6))
     short = _head(record, 1100)
     mfmjax.observe(model, record)
     mfmjax.observe(model, record, (5.0, 50.0))
+    mfmjax.moving_final_states(model, record, 45.0, [50.0, 59.0])
     with compiles() as names:
         runs = [mfmjax.observe(model, short), mfmjax.observe(model, short, (7.0, 53.0)),
                 mfmjax.observe(model, short, (7.0, 53.0), observer_window=10.0)]
+        moving = np.asarray(mfmjax.moving_final_states(model, short, 46.0, [53.0, 54.95]))
     assert names == [], f"new record and window lengths compiled {names}"
+    for x_end, end in zip(moving, (1060, 1099)):  # windows of 921 samples ending there
+        ref = jax.jit(observe_window, static_argnums=(3, 5, 6))(
+            model.unlabelled(), short.y, short.u, DT, end - 920, 921, None)
+        np.testing.assert_allclose(x_end, np.asarray(ref.x_final), rtol=1e-10,
+                                   atol=1e-10 * np.max(np.abs(np.asarray(ref.x_final))))
     for obs, (start, length, ob) in zip(runs, [(0, 1100, None), (140, 921, None),
                                                (140, 921, 201)]):
         ref = jax.jit(observe_window, static_argnums=(3, 5, 6))(
