@@ -120,6 +120,9 @@ def phi_scaled(r, N, M, i: int, *, xp=jnp):
     """
     if xp is jnp:
         require_x64("phi_scaled")
+        # concrete exponents as float64 values: a Python int exponent is a static `integer_pow`
+        # (one eager program per exponent); a float one is `pow`, one program for every (N, M)
+        N, M = (np.float64(x) if _is_concrete(x) and np.ndim(x) == 0 else x for x in (N, M))
     r = xp.asarray(r, dtype=xp.float64)
     inside = (r > 0) & (r < 1)
     rs = xp.where(inside, r, 0.5)  # keeps gradients finite at and outside the ends

@@ -23,6 +23,31 @@ def test_phi_matches_reference(N, M, h):
         assert np.max(np.abs(host - ref)) <= 1e-12 * np.max(np.abs(ref)), i
 
 
+def test_eager_phi_at_new_exponents_compiles_nothing():
+    """Eager `phi`, `phi_integral` and `kernel_weights` at new integer exponents N, M reuse the
+    programs of the first ones: the exponents are float64 values, not static `integer_pow`
+    exponents (before, 6 `integer_pow` programs for (5, 6) after (3, 4)). Values: the NumPy
+    twin, 1e-12 relative as above."""
+    from jaxlog import compiles
+
+    from mfmjax._quadrature import kernel_weights
+
+    t = np.linspace(0.0, 2.0, 41)
+
+    def calls(mf):
+        return (phi(t, mf, 1), phi_integral(0.1, 1.5, mf, 0), phi_integral(0.1, 1.5, mf, 2),
+                kernel_weights(mf, 1, 0.05, "foh", 0.0, 48))
+
+    calls(ModulatingFunction(3, 4, 2.0))
+    with compiles() as names:
+        got = calls(ModulatingFunction(5, 6, 2.0))
+    assert names == [], f"new exponents compiled {names}"
+    ref = R.phi(t, 5, 6, 2.0, 1)
+    assert np.max(np.abs(np.asarray(got[0]) - ref)) <= 1e-12 * np.max(np.abs(ref))
+    ref = R.phi(1.5, 5, 6, 2.0, 1) - R.phi(0.1, 5, 6, 2.0, 1)
+    assert abs(float(got[2]) - ref) <= 1e-12 * np.max(np.abs(R.phi(t, 5, 6, 2.0, 1)))
+
+
 def test_phi_vanishes_at_ends_and_is_consistent():
     mf = ModulatingFunction(3, 4, 2.0)
     for i in range(3):
