@@ -1,6 +1,7 @@
 """`estimate`: search -> SRIVC (-> output error) in one call, on a noisy record (issue 14)."""
 
 import os
+import re
 import warnings
 
 import numpy as np
@@ -105,6 +106,8 @@ def test_cli_search_estimate(noisy, tmp_path, capsys):
     assert main(args) == 0
     text = capsys.readouterr().out
     assert "method: MFM search -> srivc" in text and "std error" in text
+    # the header times the whole estimate (it printed its last search's compile and run time)
+    assert re.search(r"candidates, ranked by E on held-back data \(estimate \d+\.\d s: ", text)
     assert main(args + ["--json"]) == 0
     est = json.loads(capsys.readouterr().out)["estimated"]
     ref = mfmjax.estimate(sig, **GRID)
