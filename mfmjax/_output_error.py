@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _boundary as _b
 from . import _padded as padded
 from ._jit import device, jit
 from ._linalg import small_matmul
@@ -187,16 +188,67 @@ def output_error(
     A failed solve returns the starting model with the solver's code in `result`. A fit that did
     not converge says so: `converged` is False, `summary()` prints NOT CONVERGED, and the call
     warns. An unstable start has its right-half-plane poles mirrored first (`stabilised`).
+
+    **A batch of records** (Monte Carlo realisations, repeated experiments): `signals` a list of
+    `Signals` of one layout and `model` one start or a list of them (one per record), whole
+    records (no `window`). Chunks of pairs of one padded shape run in one compiled call each,
+    on a thread per core (`output_error_many`); returns a list of fits, None where a start
+    could not be simulated (overflow, unobservable), and one warning counts the fits that did
+    not converge. Eager only: the Levenberg-Marquardt bookkeeping runs on the host, so
+    `jax.jit`/`jax.vmap` over records is refused (`srivc` traces).
     """
     from ._boundary import check_output_error
 
+    if not isinstance(signals, Signals):
+        return _output_error_batch(signals, model, window, max_steps, rtol, atol)
     check_output_error(signals, window_=window, max_steps=max_steps, rtol=rtol, atol=atol)
-
-    if not isinstance(model, Model):
-        raise TypeError("output_error(): model must be a Model")
+    _eager_only(signals, model)
     residual, meta = _prepare(signals, model, window, rehearse=(max_steps, rtol, atol))
     return _finish(residual, meta, _lm(residual, *_lm_arguments(residual.size, max_steps, rtol,
                                                                 atol)))
+
+
+def _eager_only(signals: Signals, model) -> None:
+    """TypeError for a model that is not a `Model`, and for traced records or models."""
+    if not isinstance(model, Model):
+        raise TypeError(f"output_error(): model must be a Model (e.g. from identify), got "
+                        f"{type(model).__name__}")
+    if any(_b.is_traced(x) for x in (signals.y, signals.u, signals.dt, model.a)):
+        raise TypeError("output_error() is eager (its Levenberg-Marquardt bookkeeping runs on "
+                        "the host): call it outside jax.jit/jax.vmap; for a batch of records "
+                        "pass a list, output_error([sig1, sig2, ...], starts), or use srivc, "
+                        "which traces")
+
+
+def _output_error_batch(signals, model, window, max_steps, rtol, atol) -> list:
+    """`output_error` on a list of records (its docstring): checked like one record each."""
+    from ._batch import as_records
+    from ._boundary import check_output_error
+
+    records, _ = as_records("output_error", signals)
+    if window is not None:
+        raise ValueError("output_error(): a list of records is fitted on whole records; give "
+                         "window=None, or cut the records to the window first")
+    models = list(model) if isinstance(model, list | tuple) else [model] * len(records)
+    if len(models) != len(records):
+        raise ValueError(f"output_error(): {len(records)} records but {len(models)} start "
+                         "models; give one model for all records or one per record")
+    for r, m in zip(records, models):
+        check_output_error(r, window_=None, max_steps=max_steps, rtol=rtol, atol=atol)
+        _eager_only(r, m)
+        if m.n_inputs != r.n_inputs:
+            raise ValueError(f"output_error(): a start model has {m.n_inputs} inputs but the "
+                             f"records have {r.n_inputs}; start from models of these signals")
+    with warnings.catch_warnings():  # one warning for the batch, below
+        warnings.simplefilter("ignore")
+        fits = output_error_many(records, models, max_steps=max_steps, rtol=rtol, atol=atol)
+    bad = [i for i, f in enumerate(fits) if f is None or not f.converged]
+    if bad:
+        warnings.warn(f"output_error(): {len(bad)} of {len(fits)} fits did not converge "
+                      f"(records {bad[:10]}{'...' if len(bad) > 10 else ''}); each returned its "
+                      "best iterate with its code in `result` (None: the start could not be "
+                      "simulated)", stacklevel=3)
+    return fits
 
 
 _REHEARSED: set = set()  # residual layouts whose `_lm` program this process has compiled

@@ -42,6 +42,35 @@ def test_not_converged_is_reported_and_warned(noisy):
     assert "NOT" not in done.summary()
 
 
+def test_a_list_of_records_is_fitted_as_a_batch_and_vmap_is_refused(noisy):
+    """`output_error([records], start)` (a Monte Carlo polish): each fit is the record's own
+    `output_error` (the same program per pair: 1e-12 of the parameters), one warning counts
+    the fits that did not converge, and a window or a count mismatch is refused by name.
+    `jax.vmap(output_error)` over stacked records says the function is eager and names the
+    list (before: JAX's TracerArrayConversionError from inside the host code)."""
+    import jax
+
+    recs = [noisy] + [simulated_experiment(TRUE, dt=0.05, n_samples=800, seed=s,
+                                           noise_std=0.01) for s in (3, 4)]
+    start = mfmjax.identify(noisy, Structure(2, [0]), mfmjax.ModulatingFunction(3, 3, 2.0))
+    fits = mfmjax.output_error(recs, start)
+    for r, got in zip(recs, fits):
+        want = mfmjax.output_error(r, start)
+        assert got.converged and got.names == want.names
+        np.testing.assert_allclose(got.theta, want.theta, rtol=1e-12)
+    with pytest.warns(UserWarning, match=r"output_error\(\): 3 of 3 fits did not converge"):
+        short = mfmjax.output_error(recs, [start] * 3, max_steps=1)
+    assert not any(f.converged for f in short)
+    with pytest.raises(ValueError, match=r"output_error\(\): 3 records but 2 start models"):
+        mfmjax.output_error(recs, [start] * 2)
+    with pytest.raises(ValueError, match=r"output_error\(\): a list of records is fitted on "
+                                         r"whole records; give window=None"):
+        mfmjax.output_error(recs, start, window=(0.0, 20.0))
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *recs)
+    with pytest.raises(TypeError, match=r"output_error\(\) is eager .* pass a list"):
+        jax.vmap(lambda r: mfmjax.output_error(r, start).theta)(stacked)
+
+
 def test_unstable_start_is_stabilised_and_fitted(noisy):
     """An unstable start (a_1 < 0) used to raise 'overflows float64 ... shorten the window'.
     Mirrored, it is a stable start with the same |A| on the imaginary axis; the fit then finds
