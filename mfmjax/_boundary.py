@@ -205,6 +205,29 @@ def min_support(fn: str, h, dt: float, name: str = "h") -> None:
 # -- argument checks of the public verbs whose bodies live elsewhere (one call at their top) ---
 
 
+# what to do instead, for the public functions whose work runs on the host (`eager_only`)
+EAGER_FIX = {
+    "search": "for several records call it once per record, or lay experiments end to end "
+              "with Signals.concatenate",
+    "estimate": "for a batch of records pass a list: estimate([sig1, sig2, ...], ...)",
+    "refine": "under jax.grad or jax.vmap use scores, which traces",
+    "compare": "under jax.jit or jax.vmap use observe, which traces",
+    "residuals": "under jax.jit or jax.vmap use observe, which traces",
+    "output_error": "for a batch of records pass a list, output_error([sig1, sig2, ...], "
+                    "starts), or use srivc, which traces",
+}
+
+
+def eager_only(fn: str, signals) -> None:
+    """TypeError naming `fn` and `EAGER_FIX[fn]` when the record's arrays are traced: `fn`
+    plans or decides on the host, so a `jax.jit`/`jax.vmap` over records cannot run it (JAX's
+    TracerArrayConversionError came from inside the host code)."""
+    if any(is_traced(x) for x in (signals.y, signals.u, signals.dt, signals.delays)):
+        raise TypeError(f"{fn}() runs on the host (its grid, decisions or bookkeeping), so it "
+                        f"cannot take a traced record inside jax.jit/jax.vmap; call it on "
+                        f"concrete records: {EAGER_FIX[fn]}")
+
+
 def _signals_arg(fn: str, signals):
     from ._signals import Signals
 
@@ -245,6 +268,7 @@ def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_wi
     fn = "search"
     require_x64(fn)
     signals = _signals_arg(fn, signals)
+    eager_only(fn, signals)
     integers(fn, "n", n, lo=1, fix="orders are whole numbers, e.g. n=(1, 2, 3)")
     for name, val in (("N", N), ("M", M)):
         integers(fn, name, val, lo=1, fix=f"give whole exponents, e.g. {name}=(3, 4, 5)")
@@ -328,7 +352,7 @@ def check_refine(signals, *, score, vary, bounds, validate, observer_window, max
     """refine(): `vary` a sequence of names (never a bare string), finite bounds, steps >= 1."""
     fn = "refine"
     require_x64(fn)
-    _signals_arg(fn, signals)
+    eager_only(fn, _signals_arg(fn, signals))
     choice(fn, "score", score, ("E", "J"))
     if isinstance(vary, (str, bytes)):
         raise TypeError(f"{fn}(): vary must be a sequence of names, not the string "

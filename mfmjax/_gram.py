@@ -71,6 +71,10 @@ def source_groups(signals: Signals, structure: Structure):
     return groups
 
 
+TRACED_DELAYS = ("pass delay_max=... (records stacked for jax.vmap carry their delays as "
+                 "traced values: delay_max=0.0 when they have none)")
+
+
 def static_span(signals: Signals, mf: ModulatingFunction, delay_max: float | None) -> float:
     """Largest tau + h, fixing the static kernel length."""
     if mf.h_max is None:
@@ -81,7 +85,7 @@ def static_span(signals: Signals, mf: ModulatingFunction, delay_max: float | Non
     if delay_max is None:
         if isinstance(signals.delays, jax.core.Tracer):
             raise ValueError(
-                "identify(): delays are traced but no static bound is known; pass delay_max=..."
+                f"identify(): delays are traced but no static bound is known; {TRACED_DELAYS}"
             )
         delay_max = float(np.max(np.asarray(signals.delays), initial=0.0))
     return mf.h_max + delay_max

@@ -213,11 +213,10 @@ def _eager_only(signals: Signals, model) -> None:
     if not isinstance(model, Model):
         raise TypeError(f"output_error(): model must be a Model (e.g. from identify), got "
                         f"{type(model).__name__}")
-    if any(_b.is_traced(x) for x in (signals.y, signals.u, signals.dt, model.a)):
-        raise TypeError("output_error() is eager (its Levenberg-Marquardt bookkeeping runs on "
-                        "the host): call it outside jax.jit/jax.vmap; for a batch of records "
-                        "pass a list, output_error([sig1, sig2, ...], starts), or use srivc, "
-                        "which traces")
+    _b.eager_only("output_error", signals)
+    if _b.is_traced(model.a):
+        raise TypeError("output_error(): the start model is traced; give a concrete model "
+                        f"(outside jax.jit/jax.vmap): {_b.EAGER_FIX['output_error']}")
 
 
 def _output_error_batch(signals, model, window, max_steps, rtol, atol) -> list:

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _boundary as _b
+from ._gram import TRACED_DELAYS
 from ._identify import identify_model
 from ._jit import device, jit
 from ._model import Model
@@ -88,8 +89,10 @@ def scores(
     if h_max is None:
         h_max = float(h)  # raises for a tracer: then h_max is required
     if delay_max is None:
+        if _b.is_traced(delays):
+            raise ValueError(f"scores(): delays are traced but no static bound is known; {TRACED_DELAYS}")
         delay_max = float(np.max(np.asarray(delays), initial=0.0))
-    kernel = kernel_bucket(kernel_length(float(h_max) + float(delay_max), signals.dt))
+    kernel = kernel_bucket(kernel_length(float(h_max) + float(delay_max), signals.host_dt))
     sig = signals.unlabelled()
     setting = (structure, _value(h), _value(N), _value(M), delays, eta, kernel)
     if _b.is_traced(sig.y) or _b.is_traced(sig.u):

@@ -148,6 +148,21 @@ def test_vmap_over_stacked_signals():
         one = mfmjax.identify(s, st, mf)
         assert np.allclose(np.asarray(a[k]), np.asarray(one.a), rtol=1e-9, atol=0)
         assert float(E[k]) == pytest.approx(float(mfmjax.observe(one, s).E), rel=1e-9)
+    # without the bound, the error says why a record's delays are traced (its kernel length
+    # read dt as a traced value before, and the traced delays gave TracerArrayConversionError)
+    with pytest.raises(ValueError, match=r"scores\(\): delays are traced .* delay_max=0\.0 when"):
+        jax.vmap(lambda s: mfmjax.scores(s, st, h=2.0, N=4.0, M=5.0)["E"])(stacked)
+    # the functions that run on the host refuse a traced record by name, with what to do
+    model = mfmjax.identify(sigs[0], st, mf)
+    for fn, call, fix in (
+            ("estimate", lambda s: mfmjax.estimate(s, h=2.0), "pass a list"),
+            ("search", lambda s: mfmjax.search(s, n=3, N=4, M=5, h=2.0), "once per record"),
+            ("refine", lambda s: mfmjax.refine(s, model), "use scores"),
+            ("compare", lambda s: mfmjax.compare(model, s), "use observe"),
+            ("residuals", lambda s: mfmjax.residuals(model, s), "use observe"),
+            ("output_error", lambda s: mfmjax.output_error(s, model), "pass a list")):
+        with pytest.raises(TypeError, match=rf"{fn}\(\) runs on the host .*{fix}"):
+            jax.vmap(call)(stacked)
 
 
 def test_no_recompile_second_call():

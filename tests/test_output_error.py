@@ -46,7 +46,7 @@ def test_a_list_of_records_is_fitted_as_a_batch_and_vmap_is_refused(noisy):
     """`output_error([records], start)` (a Monte Carlo polish): each fit is the record's own
     `output_error` (the same program per pair: 1e-12 of the parameters), one warning counts
     the fits that did not converge, and a window or a count mismatch is refused by name.
-    `jax.vmap(output_error)` over stacked records says the function is eager and names the
+    `jax.vmap(output_error)` over stacked records says it runs on the host and names the
     list (before: JAX's TracerArrayConversionError from inside the host code)."""
     import jax
 
@@ -67,7 +67,7 @@ def test_a_list_of_records_is_fitted_as_a_batch_and_vmap_is_refused(noisy):
                                          r"whole records; give window=None"):
         mfmjax.output_error(recs, start, window=(0.0, 20.0))
     stacked = jax.tree.map(lambda *x: jnp.stack(x), *recs)
-    with pytest.raises(TypeError, match=r"output_error\(\) is eager .* pass a list"):
+    with pytest.raises(TypeError, match=r"output_error\(\) runs on the host .* pass a list"):
         jax.vmap(lambda r: mfmjax.output_error(r, start).theta)(stacked)
 
 
