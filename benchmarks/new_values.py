@@ -6,7 +6,9 @@ In a fresh process (no persistent compilation cache), each entry point is called
 1200-sample two-input record (third-order system, 1 % output noise, dt = 0.05), then again
 with one value changed: the same system sampled at dt = 0.051 (every kernel still in its
 bucket), a model of the same orders built from coefficients instead of identified, refine's
-tolerances, estimate's SRIVC tolerance, the on-line identifier's column names. The second
+tolerances, estimate's SRIVC tolerance, the on-line identifier's column names, a 1100-sample
+record and a new T_ob for `moving_final_states` and `cramer_rao`, new exponents for the eager
+`phi` and `kernel_weights`. The second
 call's wall time and the programs it compiled (JAX's compile log, `tests/jaxlog.py`) are
 printed; `--compare DIR` alternates every run with the mfmjax package in DIR (e.g. a
 `git worktree` of an earlier commit). Saves benchmarks/results/new_values.json.
@@ -34,6 +36,8 @@ def record(dt):
     return simulated_experiment(third_order_two_input(), dt=dt, n_samples=1200, seed=3,
                                 noise_std=0.01)
 base, other = record(0.05), record(0.051)
+head = Signals(np.asarray(base.y)[:1100], np.asarray(base.u)[:1100], dt=0.05,
+               intersample=base.intersample)
 grid = dict(n=(2, 3), m=[(0, 1), (0, 1)], N=(4, 5), M=5, h=(2.4, 2.6))
 small = dict(h=(2.6,), n=(2, 3), N=(4,), M=(5,))
 t, y, u, _ = switching_experiment()
@@ -75,6 +79,17 @@ pairs = {
                               lambda: mfmjax.estimate([base, base], **small, tol=1e-7)[0].model.a),
   "on-line run, new column names": (lambda: online(("y", "u1", "u2")),
                                     lambda: online(("temperature", "valve", "pump"))),
+  "moving_final_states, new length and T_ob": (
+      lambda: mfmjax.moving_final_states(given(base), base, 45.0, [50.0, 59.0]),
+      lambda: mfmjax.moving_final_states(given(base), head, 46.0, [53.0, 54.95])),
+  "cramer_rao, new experiment length": (
+      lambda: mfmjax.cramer_rao(given(base), base.u, np.zeros(3), dt=0.05, sigma=0.01)[1],
+      lambda: mfmjax.cramer_rao(given(base), head.u, np.zeros(3), dt=0.05, sigma=0.01)[1]),
+  "phi and kernel_weights, new N, M": (
+      lambda: [mfmjax.phi(np.linspace(0, 2, 41), ModulatingFunction(3, 4, 2.0), 1),
+               mfmjax.kernel_weights(ModulatingFunction(3, 4, 2.0), 1, 0.05, "foh", 0.0, 48)],
+      lambda: [mfmjax.phi(np.linspace(0, 2, 41), ModulatingFunction(5, 6, 2.0), 1),
+               mfmjax.kernel_weights(ModulatingFunction(5, 6, 2.0), 1, 0.05, "foh", 0.0, 48)]),
 }
 for name, (first, second) in pairs.items():
     jax.block_until_ready(first())

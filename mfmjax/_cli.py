@@ -148,6 +148,26 @@ def _identify_part(args, sig):
     return _record_window(args.identify_window, "identify-window", sig)
 
 
+def _observer_window(given, w, sig, option: str) -> float:
+    """The initial-state observer's length on window `w`: `given` (--observer-window), else
+    the first 20 % of the window, the rule of every validation line of the CLI (an observer
+    over the whole window fits the state to the very data it scores: a flattering fit)."""
+    from ._observers import MIN_WINDOW
+
+    if given is not None:
+        return given
+    if round(0.2 * (w[1] - w[0]) / sig.dt) + 1 < MIN_WINDOW:  # the observer's 20 %
+        raise _UserError(f"{option} {w[0]:g},{w[1]:g} is too short: its first 20 % (the "
+                         f"initial-state observer) needs at least {MIN_WINDOW} samples; widen it "
+                         f"to at least {5 * (MIN_WINDOW - 1) * sig.dt:g}, or give "
+                         "--observer-window")
+    return 0.2 * (w[1] - w[0])
+
+
+def _whole(sig) -> tuple[float, float]:
+    return (sig.t0, sig.t0 + (sig.n_samples - 1) * sig.dt)
+
+
 def _validation_report(args, sig, model) -> dict | None:
     """fit % and E of `model` on --validate-window, the state from the initial-state observer
     over the window's first 20 % (eq. 14, 17)."""
@@ -158,26 +178,23 @@ def _validation_report(args, sig, model) -> dict | None:
     w = _record_window(args.validate_window, "validate-window", sig)
     ident = _identify_part(args, sig)
     overlap = ident is None or (w[0] < ident[1] and ident[0] < w[1])
-    from ._observers import MIN_WINDOW, observation
+    from ._observers import observation
     from ._status import Status
 
-    if round(0.2 * (w[1] - w[0]) / sig.dt) + 1 < MIN_WINDOW:  # the observer's 20 %
-        raise ValueError(f"--validate-window {w[0]:g},{w[1]:g} is too short: its first 20 % (the "
-                         f"initial-state observer) needs at least {MIN_WINDOW} samples; widen it "
-                         f"to at least {5 * (MIN_WINDOW - 1) * sig.dt:g}")
+    ob = _observer_window(None, w, sig, "--validate-window")
     # the model's failure is not the user's: the model is still printed, the status says why
-    obs = observation(model, sig, w, observer_window=0.2 * (w[1] - w[0]))
+    obs = observation(model, sig, w, observer_window=ob)
     status = int(obs.status)
     if status & (Status.OVERFLOW | Status.UNOBSERVABLE):
         failed = ("the model's response overflows float64 on this window (an unstable model: "
                   "see its status)" if status & Status.OVERFLOW else
                   "the model's state is not observable on this window")
-        return {"window": list(w), "fit": None, "E": None, "observer_window": 0.2 * (w[1] - w[0]),
+        return {"window": list(w), "fit": None, "E": None, "observer_window": ob,
                 "overlaps_identification": bool(overlap), "failed": failed}
     a = round((w[0] - sig.t0) / sig.dt)
     y = np.asarray(sig.y)[a: a + obs.y_sim.shape[0]]
     return {"window": list(w), "fit": float(mfmjax.fit_percent(y, obs.y_sim)),
-            "E": float(obs.E), "observer_window": 0.2 * (w[1] - w[0]),
+            "E": float(obs.E), "observer_window": ob,
             "overlaps_identification": bool(overlap)}
 
 
@@ -739,14 +756,16 @@ def _cmd_validate(args):
     model = mfmjax.load_model(_model_path(args))
     sig = _load_signals(args)
     window = _window(args.window, "window") if args.window else None
-    obs = mfmjax.observe(model, sig, window)
+    ob = _observer_window(args.observer_window, window or _whole(sig), sig, "--window")
+    obs = mfmjax.observe(model, sig, window, observer_window=ob)
     k0 = 0 if window is None else round((window[0] - sig.t0) / sig.dt)
     y = np.asarray(sig.y)[k0 : k0 + obs.y_sim.shape[0]]
     constant = bool(np.ptp(y) == 0)  # fit % divides by the output's variation about its mean
     fit = None if constant else float(mfmjax.fit_percent(y, obs.y_sim))
     res = {"E": float(obs.E), "fit": fit, "x0": [float(v) for v in np.asarray(obs.x_initial)],
            "x_final": [float(v) for v in np.asarray(obs.x_final)],
-           "window": [sig.t0 + k0 * sig.dt, sig.t0 + (k0 + len(y) - 1) * sig.dt]}
+           "window": [sig.t0 + k0 * sig.dt, sig.t0 + (k0 + len(y) - 1) * sig.dt],
+           "observer_window": ob}
     if constant:
         res["fit_note"] = (f"undefined: the measured {sig.output_name} is constant on the "
                            "window, and fit % is relative to its variation about the mean")
@@ -759,6 +778,7 @@ def _cmd_validate(args):
         print(f"window        {res['window'][0]:g} .. {res['window'][1]:g}")
         print(f"E (eq. 17)    {res['E']:.6e}")
         print(f"fit           {res['fit_note'] if constant else f'{fit:.2f} %'}")
+        print(f"observer      the first {ob:g} of the window (x0 from those samples only)")
         print("x0            " + " ".join(f"{v:.6e}" for v in res["x0"]))
     _names_note(model, sig)
 
@@ -795,9 +815,9 @@ def _cmd_report(args):
     cov, note = an.saved_covariance(args.model, model)
     sig = _load_signals(args)
     window = _window(args.window, "window") if args.window else None
-    cmp = an.compare(model, sig, window, observer_window=args.observer_window)
-    res = an.residuals(model, sig, window, observer_window=args.observer_window,
-                       lags=args.lags)
+    ob = _observer_window(args.observer_window, window or _whole(sig), sig, "--window")
+    cmp = an.compare(model, sig, window, observer_window=ob)
+    res = an.residuals(model, sig, window, observer_window=ob, lags=args.lags)
     step = an.step_response(model, covariance=cov)
     bode = an.frequency_response(model, covariance=cov)
     os.makedirs(args.o, exist_ok=True)
@@ -807,7 +827,7 @@ def _cmd_report(args):
         obj.plot(files[name])
     rep = {"model": args.model, "data": args.file,
            "window": [float(cmp.t[0]), float(cmp.t[-1])],
-           "fit": None if not math.isfinite(cmp.fit) else cmp.fit,
+           "fit": None if not math.isfinite(cmp.fit) else cmp.fit, "observer_window": ob,
            "residuals": res.to_dict(), "bands": cov is not None, "bands_note": note,
            "figures": files}
     from ._persist import atomic_write, json_safe
@@ -815,6 +835,7 @@ def _cmd_report(args):
     path = os.path.join(args.o, "report.json")
     atomic_write(path, (json.dumps(json_safe(rep), indent=1, allow_nan=False) + "\n").encode())
     print(cmp.summary())
+    print(f"(the state from the initial-state observer over the first {ob:g} of the window)")
     print(res.summary())
     print(note)
     print(f"wrote {', '.join(os.path.basename(f) for f in files.values())} and report.json "
@@ -871,6 +892,9 @@ def main(argv=None) -> int:
     _add_model_args(p)
     _add_data_args(p)
     p.add_argument("--window", help="T0,T1 (default: the whole record)")
+    p.add_argument("--observer-window", type=_number("observer-window", lo=0, lo_open=True),
+                   help="length of the initial-state observer from the window start "
+                   "(default: the first 20 %% of the window)")
     p.add_argument("--plot", help="write measured vs simulated output to this PNG")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_validate)
@@ -881,7 +905,8 @@ def main(argv=None) -> int:
     p.add_argument("-o", required=True, help="directory for the PNGs and report.json")
     p.add_argument("--window", help="T0,T1 validation window (default: the whole record)")
     p.add_argument("--observer-window", type=_number("observer-window", lo=0, lo_open=True),
-                   help="length of the initial-state observer (default: the whole window)")
+                   help="length of the initial-state observer from the window start "
+                   "(default: the first 20 %% of the window)")
     p.add_argument("--lags", type=_number("lags", lo=1, integer=True), default=25,
                    help="correlation lags of the residual tests (default 25)")
     p.set_defaults(func=_cmd_report)
