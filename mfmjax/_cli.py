@@ -254,14 +254,21 @@ def _load_signals(args):
     if getattr(args, "detrend", None):
         from ._prepare import detrend
 
-        sig, trend = detrend(sig, args.detrend, offset=bool(args.offset))
+        part = _identify_part(args, sig) if getattr(args, "identify_window", None) else None
+        if part is None:
+            sig, trend = detrend(sig, args.detrend, offset=bool(args.offset))
+        else:  # the lines from the identification data only, removed from the whole record:
+            # fitted over the whole file they also saw the --validate-window's data
+            trend = detrend(sig.window(*part), args.detrend, offset=bool(args.offset))[1]
+            sig = trend.apply(sig, offset=bool(args.offset))
         lines = [(sig.output_name, trend.y_level, trend.y_slope)] + list(
             zip(sig.input_names, trend.u_level, trend.u_slope))
         text = ", ".join(f"{n} {float(c):.6g}" + (f"{float(s):+.6g}*(t-{trend.t0:g})"
                                                     if trend.kind == "linear" else "")
                          for n, c, s in lines)
-        print(f"note: --detrend {args.detrend}: removed {text}; the model is for deviations "
-              "from these lines", file=sys.stderr)
+        print(f"note: --detrend {args.detrend}: removed {text}"
+              + (f" (fitted on --identify-window {part[0]:g},{part[1]:g})" if part else "")
+              + "; the model is for deviations from these lines", file=sys.stderr)
     return sig
 
 
@@ -526,8 +533,14 @@ def _cmd_online(args):
         scope = f"{run['intervals']} intervals"
     res = {"mse": mse, "mse_scope": scope, "mse_this_call": mse_run, "models": ident.models,
            "intervals": total["intervals"]}
-    if not total["count"]:
-        res["mse_note"] = "no prediction yet: the first model needs n_start intervals"
+    why = None
+    if not total["count"]:  # say what held the first model back (the last interval's reason)
+        held = [e["action"] for e in ident.events if e.get("action", "none") != "none"]
+        why = (f"no prediction yet: {held[-1]}" if held else
+               "no prediction yet: no operating point was detected (the first model is "
+               "identified at the onset of a steady run: an interval where the output and "
+               "every input vary less than steady_rel times their variance so far)")
+        res["mse_note"] = why
     if args.plot:
         from ._plotting import plot_online
 
@@ -540,6 +553,8 @@ def _cmd_online(args):
         print(model_table(ident.models, end=ident._end()))
         shown = "undefined (no prediction yet)" if not total["count"] else f"{mse:.6g}"
         print(f"\nmean square prediction error: {shown} over {scope}")
+        if why:
+            print(why)
 
 
 def _check_resume(args, config, K: int, dt: float, names) -> None:

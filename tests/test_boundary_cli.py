@@ -253,6 +253,24 @@ def test_online_memory_bound(plant, capsys, tmp_path, monkeypatch):
                     "1.0 GiB); use a shorter interval or a coarser dt")
 
 
+def test_online_says_what_held_the_first_model_back(plant, capsys, tmp_path):
+    """No prediction: the note gives the last interval's reason (it said "the first model needs
+    n_start intervals" also when 16 had passed, on the DaISy heat exchanger with no steady
+    interval): waiting for n_start = 12 of 9 intervals; and, on signals that are never steady
+    (a sine of two intervals' period in every column), no operating point."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[online]\nn = [2]\nn_start = 12\n")
+    assert main(["online", plant["head"], *ONLINE, "--config", str(cfg), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["mse_note"] == (
+        "no prediction yet: waiting: 9 of 12 intervals")
+    t = np.arange(2250.0)
+    wave = np.sin(2 * np.pi * t / 500.0)
+    path = _write_csv(tmp_path / "wave.csv", ["time", "temp", "u1", "u2"],
+                      [t, wave, np.cos(2 * np.pi * t / 500.0), wave])
+    assert main(["online", str(path), *ONLINE]) == 0
+    assert "no prediction yet: no operating point was detected" in capsys.readouterr().out
+
+
 @pytest.fixture(scope="module")
 def checkpoint_run(plant):
     """An uninterrupted run and a run resumed from a checkpoint at CUT (both JSON)."""

@@ -84,3 +84,29 @@ def test_constant_input_flagged_not_nan():
         assert int(model.status) & mfmjax.Status.NO_EXCITATION
         assert np.all(np.isfinite(np.asarray(model.theta)))
         assert any("no_excitation" in str(w.message) for w in rec)
+
+
+def test_a_steady_input_is_masked_and_its_level_goes_to_the_offset():
+    """An input held constant has no gain to identify: `identify` and `search` mask all its
+    columns (b = 0, status no_excitation). With an offset term, its lag-0 column is the
+    offset column's multiple: before, the two entered a null direction of G and came back
+    split at random (here b_20 = 0.41 with offset 1.24 from `identify`, -0.033 and 3.90 from
+    `search`; on the DaISy heating system with a constant input, +-1e12). Now the offset takes
+    the input's steady contribution: 0.7 + 0.5 x 6 = 3.7 (noise-free data: the MFM estimate to
+    its quadrature error, 1e-6 relative), and the search's candidate equals `identify`'s."""
+    true = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0], [0.5]], offset=0.7)
+    dt, T = 0.02, 1500
+    t = np.arange(T) * dt
+    u = np.stack([np.sin(0.9 * t) + 0.4 * np.cos(2.9 * t), np.full(T, 6.0)], 1)
+    sig = Signals(np.asarray(mfmjax.simulate(true, u, None, dt=dt)), u, dt=dt, offset=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = mfmjax.identify(sig, Structure(2, (0, 0)), ModulatingFunction(3, 4, 1.5))
+    assert int(model.status) & mfmjax.Status.NO_EXCITATION
+    assert float(model.b[1][0]) == 0.0
+    np.testing.assert_allclose([*np.asarray(model.a)[:2], float(model.b[0][0]),
+                                float(model.offset)], [2.0, 3.0, 1.0, 3.7], rtol=1e-6)
+    best = mfmjax.search(sig, n=(2,), m=[(0,), (0,)], N=(3,), M=(4,), h=(1.5,)).best(0)
+    assert float(best.b[1][0]) == 0.0
+    np.testing.assert_allclose(np.asarray(best.theta), np.asarray(model.theta), rtol=1e-9,
+                               atol=1e-12)

@@ -312,6 +312,16 @@ def test_cli_resample_and_detrend(irregular_csv, capsys):
     assert main(["identify", path, *CLI, "--resample", "0.05", "--detrend", "constant",
                  "--offset"]) == 0
     assert json.loads(capsys.readouterr().out)["offset"] is not None
+    # with --identify-window the lines are fitted on that window only, and removed from the
+    # whole record (fitted over the file they saw the --validate-window's data too)
+    part = (float(sig.t[0]), float(sig.t[round(0.6 * (sig.n_samples - 1))]))
+    assert main(["identify", path, *CLI, "--resample", "0.05", "--detrend", "linear",
+                 "--identify-window", f"{part[0]!r},{part[1]!r}"]) == 0
+    err = capsys.readouterr().err
+    trend = mfmjax.detrend(sig.window(*part))[1]
+    assert (f"removed temp {float(trend.y_level):.6g}{float(trend.y_slope):+.6g}*(t-"
+            in err and f"(fitted on --identify-window {part[0]:g},{part[1]:g})" in err), err
+    assert f"removed temp {float(mfmjax.detrend(sig)[1].y_level):.6g}" not in err
 
 
 @pytest.mark.parametrize("extra, match", [

@@ -51,11 +51,18 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
     n_src, Q = len(static.sources), static.degree + 1
     finite = jnp.isfinite(sig.y).all() & jnp.isfinite(sig.u).all()
     spread = jnp.max(sig.u, axis=0, initial=-jnp.inf) - jnp.min(sig.u, axis=0, initial=jnp.inf)
-    excited = jnp.all(spread > 1e-12 * jnp.maximum(
-        jnp.max(jnp.abs(sig.u), axis=0, initial=0.0), 1e-300))
+    varies = spread > 1e-12 * jnp.maximum(jnp.max(jnp.abs(sig.u), axis=0, initial=0.0), 1e-300)
+    excited = jnp.all(varies)
     hpow_i = jnp.asarray(static.col_deriv, dtype=jnp.float64)
     src_of = np.asarray(static.col_source)
     pad = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])  # b blocks in the padded layout
+
+    # the input owning each column of the padded layout (-1: output, K: offset): an input
+    # that does not vary has all its columns masked, as in `identify`
+    owner = np.repeat(np.arange(-1, K + 1), [n_max + 1, *[mk + 1 for mk in m_max],
+                                             int(sig.offset)])
+    steady = ((owner >= 0) & (owner < K) & ~varies[np.clip(owner, 0, K - 1)] if K
+              else np.zeros(p, bool))
 
     def one_nm(H, W, scale, h, coef):
         Cf = coef * (h ** (-hpow_i))[:, None, None]  # (p_ext, sources, Q)
@@ -64,7 +71,7 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
         w = Cflat[:p] @ W.reshape(n_src * Q, -1)  # column kernels
         bounds = jnp.sum(jnp.abs(w), axis=1) * scale[src_of]
         alive = jnp.sqrt(jnp.maximum(jnp.diagonal(Gx)[:p], 0.0)) > DEAD_COLUMN_RTOL * bounds
-        return Gx, alive
+        return Gx, alive & ~steady
 
     a_idx = np.arange(n_max + 1)
 
