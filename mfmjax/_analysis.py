@@ -82,7 +82,7 @@ def _check(model, signals, fn):
     if not isinstance(signals, Signals):
         raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}")
     if fn in _b.EAGER_FIX:
-        _b.eager_only(fn, signals)
+        _b.eager_only(fn, signals, model)
     if model.n_inputs != signals.n_inputs:
         raise ValueError(f"{fn}(): the model has {model.n_inputs} inputs but the signals have "
                          f"{signals.n_inputs}; pass the inputs the model was identified with")
@@ -388,6 +388,7 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
     `OutputErrorFit`, `SrivcFit`); `covariance`: of `free_parameters(model)` (a_0..a_{n-1},
     b_kj, offset), overrides the fit's. **Returns:** `StepResponse`.
     """
+    _b.eager_only("step_response", model, t_final, covariance)
     model, cov = model_and_covariance(model, covariance, "step_response")
     n_points = _b.integer("step_response", "n_points", n_points, lo=2, hi=100_000)
     if t_final is None:
@@ -465,6 +466,7 @@ def frequency_response(model, w=None, *, covariance=None, n_points: int = 400):
 
     **Arguments:** as `step_response`. **Returns:** `FrequencyResponse`.
     """
+    _b.eager_only("frequency_response", model, w, covariance)
     model, cov = model_and_covariance(model, covariance, "frequency_response")
     if w is None:
         n_points = _b.integer("frequency_response", "n_points", n_points, lo=2, hi=100_000)

@@ -126,6 +126,9 @@ def window(fn: str, name: str, value):
     """None or a time window (start, end): two finite numbers with start < end."""
     if value is None:
         return None
+    if any(is_traced(x) for x in jax.tree.leaves(value)):
+        raise TypeError(f"{fn}(): {name} is traced (inside jax.jit/jax.vmap/jax.grad); a window "
+                        "fixes how many samples are used, so give concrete times (start, end)")
     if isinstance(value, (str, bytes)) or not isinstance(
             value, (list, tuple, np.ndarray, jax.Array)):
         raise TypeError(f"{fn}(): {name} must be a pair (start, end) of times, got "
@@ -215,17 +218,31 @@ EAGER_FIX = {
     "residuals": "under jax.jit or jax.vmap use observe, which traces",
     "output_error": "for a batch of records pass a list, output_error([sig1, sig2, ...], "
                     "starts), or use srivc, which traces",
+    "step_response": "under jax.jit, jax.vmap or jax.grad use simulate, which traces",
+    "frequency_response": "under jax.jit, jax.vmap or jax.grad evaluate B_k(jw)/A(jw) from "
+                          "model.a and model.b with jnp.polyval",
+    "cramer_rao": "it returns NumPy standard deviations; compute it outside the transformation",
+    "to_scipy": "export a concrete model",
+    "to_control": "export a concrete model",
+    "save_model": "save a concrete model",
+    "Signals.window": "cut the arrays before the transformation (y[a:b], u[a:b])",
+    "Signals.concatenate": "concatenate concrete records before the transformation",
+    "Model.from_coefficients": "build the Model from concrete coefficients, then put traced "
+                               "ones in with equinox.tree_at (a, b, offset)",
+    "update": "feed concrete samples (the on-line identifier's buffers live on the host)",
+    "resample": "resample concrete samples before the transformation",
 }
 
 
-def eager_only(fn: str, signals) -> None:
-    """TypeError naming `fn` and `EAGER_FIX[fn]` when the record's arrays are traced: `fn`
-    plans or decides on the host, so a `jax.jit`/`jax.vmap` over records cannot run it (JAX's
-    TracerArrayConversionError came from inside the host code)."""
-    if any(is_traced(x) for x in (signals.y, signals.u, signals.dt, signals.delays)):
+def eager_only(fn: str, *values, fix: str | None = None) -> None:
+    """TypeError naming `fn` and what to do instead (`fix`, default `EAGER_FIX[fn]`) when a
+    leaf of `values` (records, models, settings) is traced: `fn` plans, decides or draws on
+    the host, so `jax.jit`/`jax.vmap`/`jax.grad` cannot run it (JAX's
+    TracerArrayConversionError or ConcretizationTypeError came from inside the host code)."""
+    if any(is_traced(x) for v in values for x in jax.tree.leaves(v)):
         raise TypeError(f"{fn}() runs on the host (its grid, decisions or bookkeeping), so it "
-                        f"cannot take a traced record inside jax.jit/jax.vmap; call it on "
-                        f"concrete records: {EAGER_FIX[fn]}")
+                        f"cannot take traced values inside jax.jit/jax.vmap/jax.grad; call it on "
+                        f"concrete values: {fix or EAGER_FIX[fn]}")
 
 
 def _signals_arg(fn: str, signals):
@@ -268,7 +285,7 @@ def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_wi
     fn = "search"
     require_x64(fn)
     signals = _signals_arg(fn, signals)
-    eager_only(fn, signals)
+    eager_only(fn, signals, n, N, M, h, m, delays, validate, observer_window, eta)
     integers(fn, "n", n, lo=1, fix="orders are whole numbers, e.g. n=(1, 2, 3)")
     for name, val in (("N", N), ("M", M)):
         integers(fn, name, val, lo=1, fix=f"give whole exponents, e.g. {name}=(3, 4, 5)")

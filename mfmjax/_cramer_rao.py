@@ -27,8 +27,9 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
 
     **Returns:** (names, std of the parameters).
     """
-    from ._boundary import check_cramer_rao
+    from ._boundary import check_cramer_rao, eager_only
 
+    eager_only("cramer_rao", model, u, x0, dt, sigma, length)
     check_cramer_rao(model, u, x0, dt, sigma, length)
     u = np.asarray(u, dtype=np.float64).reshape(np.shape(u)[0], -1)
     length = u.shape[0] if length is None else int(length)

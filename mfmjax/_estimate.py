@@ -145,8 +145,7 @@ def estimate(
     in `converged` and `summary()`, and warns.
     """
     records, single = as_records("estimate", signals)
-    for rec in records:
-        _b.eager_only("estimate", rec)
+    _b.eager_only("estimate", records, h, n, N, M, m, delays, identify, validate)
     if polish is not None and not isinstance(polish, bool):
         raise TypeError(f"estimate(): polish must be True or False (or None: decided on the "
                         f"hold-out data), got {polish!r}")

@@ -194,6 +194,9 @@ def gram(ms: ModulatedSignals) -> jax.Array:
     r"""$G = \int c(t) c(t)^T dt$ (eq. 9-10), Gregory rule on the valid samples (one compiled
     program per shape outside jit/vmap/grad)."""
     require_x64("gram")
+    if not isinstance(ms, ModulatedSignals):
+        raise TypeError(f"gram(): give the ModulatedSignals of modulated_signals(signals, "
+                        f"structure, mf), got {type(ms).__name__}")
     return _gram_program(ms)
 
 

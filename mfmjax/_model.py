@@ -76,8 +76,9 @@ class Model(eqx.Module):
 
         Coefficients are normalised to a_n = 1. Raises if a_n = 0 or the orders are invalid.
         """
-        from ._boundary import number
+        from ._boundary import eager_only, number
 
+        eager_only("Model.from_coefficients", a, b, offset, delays)
         offset = None if offset is None else number("Model.from_coefficients", "offset", offset)
         a = np.asarray(a, dtype=np.float64)
         if a.ndim != 1 or a.size < 2:

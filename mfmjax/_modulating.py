@@ -112,12 +112,22 @@ def _falling(x, j: int, xp=jnp):
     return out
 
 
+def derivative_order(fn: str, i) -> int:
+    """`i`, the derivative order of phi: a static int >= 0 (a negative one gave zeros or the
+    i = 0 integral silently)."""
+    if isinstance(i, bool) or not isinstance(i, int | np.integer) or i < 0:
+        raise ValueError(f"{fn}(): i, the derivative order, must be a Python integer >= 0 "
+                         f"(static under jax.jit), got {i!r}")
+    return int(i)
+
+
 def phi_scaled(r, N, M, i: int, *, xp=jnp):
     r"""$p_i(r) = d^i/dr^i [r^N (1-r)^M]$ on $r \in [0, 1]$ (closed form, Leibniz rule).
 
     `i` is a static int; `r` an array; `N`, `M` numbers or arrays. Values outside $[0,1]$ are 0.
     `xp=numpy` evaluates on the host (plans: no compiled program per shape).
     """
+    i = derivative_order("phi_scaled", i)
     if xp is jnp:
         require_x64("phi_scaled")
         # concrete exponents as float64 values: a Python int exponent is a static `integer_pow`
@@ -143,6 +153,7 @@ def phi_scaled(r, N, M, i: int, *, xp=jnp):
 def phi(t, mf: ModulatingFunction, i: int = 0):
     r"""$\phi^{(i)}(t) = h^{N+M-i} p_i(t/h)$ in physical time (0 outside $[0, h]$)."""
     require_x64("phi")
+    i = derivative_order("phi", i)
     h = mf.h
     return h ** (mf.N + mf.M - i) * phi_scaled(jnp.asarray(t) / h, mf.N, mf.M, i)
 
@@ -154,6 +165,7 @@ def phi_integral(a, b, mf: ModulatingFunction, i: int = 0):
     $h^{N+M+1} B(N+1, M+1)\,[I_{b/h} - I_{a/h}]$ with the regularised incomplete beta $I$.
     """
     require_x64("phi_integral")
+    i = derivative_order("phi_integral", i)
     if i >= 1:
         return phi(b, mf, i - 1) - phi(a, mf, i - 1)
     h = mf.h

@@ -273,6 +273,8 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
     T_ob = _b.number("moving_final_states", "T_ob", T_ob, lo=0, lo_open=True,
                      fix="give the observer length in the record's time unit")
     length = round(T_ob / signals.host_dt) + 1
+    _b.eager_only("moving_final_states", times, fix="the times t_j set which samples each "
+                  "window holds: give them as concrete numbers")
     times = _b.array("moving_final_states", "times", times, ndim=(0, 1))
     if times.size == 0:
         raise ValueError("moving_final_states(): times is empty; give at least one time t_j")

@@ -1033,6 +1033,7 @@ def update(state: OnlineState, t, y, u):
     """
     if not isinstance(state, OnlineState):
         raise TypeError("update(): state must be an OnlineState (from init or load)")
+    _b.eager_only("update", t, y, u)
     c = state.config
     K, S, L = c.n_inputs, c.samples, c.buffer
     t, y, u = _chunk_arrays(t, y, u, K)

@@ -11,7 +11,7 @@ import tempfile
 
 import numpy as np
 
-from ._boundary import require_x64
+from ._boundary import eager_only, require_x64
 from ._model import Model
 from ._modulating import ModulatingFunction
 from ._pytree import replace_fields
@@ -84,6 +84,10 @@ def save_model(model: Model, path, *, covariance=None) -> None:
     `OutputErrorFit.covariance`), stored with their names for `mfmjax report`'s bands;
     `load_model` ignores it, and files without it stay valid."""
     require_x64("save_model")
+    if not isinstance(model, Model):
+        raise TypeError(f"save_model(): model must be a Model (e.g. from identify or "
+                        f"estimate(...).model), got {type(model).__name__}")
+    eager_only("save_model", model, covariance)
     doc = {"format": FORMAT, "version": VERSION, **model.to_dict()}
     if covariance is not None:
         from ._output_error import free_parameters

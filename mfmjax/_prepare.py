@@ -362,6 +362,7 @@ def resample(t, y, u=None, *, dt, intersample="foh", output_rule: str = "linear"
         if bad in kwargs:
             raise TypeError(f"resample(): {bad}= is not an option (the grid starts at the first "
                             "shared time of the record)")
+    _b.eager_only("resample", t, y, u, dt)
     names = kwargs.pop("input_names", None)
     t0, y_new, u_new, rules, names = resample_arrays(
         "resample", t, y, u, dt=dt, intersample=intersample, output_rule=output_rule,

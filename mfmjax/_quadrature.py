@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._boundary import require_x64
-from ._modulating import ModulatingFunction, phi_scaled
+from ._modulating import ModulatingFunction, derivative_order, phi_scaled
 
 RULES = ("zoh", "foh", "cubic")
 _GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(12)
@@ -106,6 +106,18 @@ def kernel_weights(mf: ModulatingFunction, i: int, dt: float, rule: str, delay, 
     (differentiable). Weights beyond the support are exactly 0.
     """
     require_x64("kernel_weights")
+    i = derivative_order("kernel_weights", i)
+    concrete = lambda x: not isinstance(x, jax.core.Tracer)  # noqa: E731
+    if concrete(dt) and not (math.isfinite(float(dt)) and float(dt) > 0):
+        raise ValueError(f"kernel_weights(): dt must be a finite number > 0, got {dt!r}")
+    if concrete(delay) and np.any(np.asarray(delay) < 0):
+        raise ValueError(f"kernel_weights(): delay must be >= 0, got {delay!r}")
+    if concrete(dt) and concrete(delay) and concrete(mf.h):
+        need = kernel_length(float(np.max(mf.h)) + float(np.max(delay)), float(dt))
+        if length < need:
+            raise ValueError(f"kernel_weights(): length={length} is shorter than the support "
+                             f"(h + delay) / dt: it needs {need} samples, or the weights are "
+                             "cut off")
     return profile_weights(lambda r: phi_scaled(r, mf.N, mf.M, i)[None], mf.h, dt, rule, delay,
                            length)[0]
 

@@ -87,7 +87,10 @@ def scores(
         raise ValueError(f"scores(): eta must have {p} entries, got shape {eta.shape}")
     delays = signals.delays if delays is None else _value(delays)
     if h_max is None:
-        h_max = float(h)  # raises for a tracer: then h_max is required
+        if _b.is_traced(h):
+            raise ValueError("scores(): h is traced (jax.jit/jax.vmap/jax.grad) but no static "
+                             "bound is known; pass h_max=... (it fixes the kernel length)")
+        h_max = float(h)
     if delay_max is None:
         if _b.is_traced(delays):
             raise ValueError(f"scores(): delays are traced but no static bound is known; {TRACED_DELAYS}")
@@ -211,6 +214,7 @@ def refine(
     from ._boundary import check_refine
     from ._search import SearchResult
 
+    _b.eager_only("refine", start)
     check_refine(signals, score=score, vary=vary, bounds=bounds, validate=validate,
                  observer_window=observer_window, max_steps=max_steps, rtol=rtol, atol=atol,
                  top=top)

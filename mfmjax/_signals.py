@@ -442,7 +442,7 @@ class Signals(eqx.Module):
         """The samples with t0 <= t <= t1 (rounded to the grid) as their own record; time,
         rules, delays, offset and names are kept."""
         _b.window("Signals.window", "window", (t0, t1))
-        T, dt = self.n_samples, self.dt
+        T, dt = self.n_samples, self.host_dt  # a number also for stacked records under vmap
         a, b = round((float(t0) - self.t0) / dt), round((float(t1) - self.t0) / dt)
         if not 0 <= a < b <= T - 1:
             raise ValueError(f"Signals.window(): ({float(t0):g}, {float(t1):g}) must lie inside "
@@ -470,6 +470,7 @@ class Signals(eqx.Module):
         records = list(records)
         if not records or not all(isinstance(r, Signals) for r in records):
             raise TypeError("Signals.concatenate(): give a list of Signals (one per experiment)")
+        _b.eager_only("Signals.concatenate", records)
         first = records[0]
         for i, r in enumerate(records[1:], 1):
             for attr in ("dt", "intersample", "smooth", "offset", "output_rule", "output_name",

@@ -20,7 +20,7 @@ def closed_form(G, eta):
     Fails (inf/NaN) when G is singular, which it is on noise-free data in exact arithmetic.
     """
     require_x64("closed_form")
-    G, eta = jnp.asarray(G), jnp.asarray(eta)
+    G, eta = jnp.asarray(G, jnp.float64), jnp.asarray(eta, jnp.float64)  # float32 in: float64 out
     if G.ndim != 2 or G.shape[0] != G.shape[1] or eta.shape != G.shape[:1]:
         raise ValueError(f"closed_form(): G must be square (p, p) and eta (p,); got G "
                          f"{G.shape} and eta {eta.shape}")
@@ -44,8 +44,13 @@ def constrained_solve(G, eta, active, conditioning: bool = True):
     constrained problem; both to relative accuracy 1e-4 (`conditioning_eigvals`).
     """
     require_x64("constrained_solve")
+    G, eta, active = (jnp.asarray(G, jnp.float64), jnp.asarray(eta, jnp.float64),
+                      jnp.asarray(active, dtype=bool))
+    if G.ndim != 2 or G.shape[0] != G.shape[1] or eta.shape != G.shape[:1] \
+            or active.shape != G.shape[:1]:
+        raise ValueError(f"constrained_solve(): G must be square (p, p), eta and active (p,); "
+                         f"got G {G.shape}, eta {eta.shape} and active {active.shape}")
     p = G.shape[0]
-    active = jnp.asarray(active, dtype=bool)
     diag = jnp.diagonal(G)
     d = jnp.where(active & (diag > 0), 1.0 / jnp.sqrt(jnp.where(diag > 0, diag, 1.0)), 1.0)
     Gt = d[:, None] * G * d[None, :]

@@ -77,6 +77,9 @@ def to_scipy(model: Model, *, ignore_delays: bool = False):
     `to_control(model, pade_order=...)` (a Pade approximation) or shift the inputs yourself.
     """
     require_x64("to_scipy")
+    from ._boundary import eager_only
+
+    eager_only("to_scipy", model)
     import numpy as np
     from scipy import signal
 
@@ -106,6 +109,9 @@ def to_control(model: Model, *, pade_order: int = 5):
     requires the optional `control` package.
     """
     require_x64("to_control")
+    from ._boundary import eager_only
+
+    eager_only("to_control", model)
     try:
         import control
     except ImportError as err:  # pragma: no cover - depends on the environment

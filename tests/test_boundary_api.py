@@ -416,3 +416,82 @@ def test_output_given_as_an_input_is_refused():
         with pytest.raises(ValueError, match=r"Signals\(\): input 'u\d' is the output 'y' itself"):
             Signals(y, u, dt=0.1)
     Signals(y, other, dt=0.1)  # an ordinary input is fine
+
+
+# -- traced values where the host decides; derivative orders, kernels, solves -----------------
+
+
+def test_host_functions_refuse_traced_values_by_name(data, fitted):
+    """Functions that plan, decide or draw on the host say so when a value they read is traced
+    (an audit found JAX's TracerArrayConversionError, ConcretizationTypeError or
+    TracerBoolConversionError from inside their host code), and name what traces instead."""
+    import jax.numpy as jnp
+
+    model, sig = data
+    host = "runs on the host .* call it on concrete values"
+    cases = [
+        (lambda m: mfmjax.step_response(m).y, fitted, f"step_response\\(\\) {host}.*simulate"),
+        (lambda m: mfmjax.frequency_response(m).magnitude_db, fitted,
+         f"frequency_response\\(\\) {host}"),
+        (lambda a: mfmjax.Model.from_coefficients(a, [[1.0]]).a, jnp.asarray([2.0, 3.0, 1.0]),
+         f"Model.from_coefficients\\(\\) {host}.*equinox.tree_at"),
+        (lambda h: mfmjax.search(sig, n=(2,), N=(3,), M=(3,), h=h).row(0)["E"], 4.0,
+         f"search\\(\\) {host}"),
+        (lambda u: mfmjax.cramer_rao(model, u, np.zeros(2), dt=DT, sigma=0.1)[1],
+         np.asarray(sig.u), f"cramer_rao\\(\\) {host}"),
+        (lambda m: mfmjax.compare(m, sig).fit, fitted, f"compare\\(\\) {host}.*observe"),
+        (lambda t0: mfmjax.observe(model, sig, (t0, 15.0)).E, 1.0,
+         r"observe\(\): window is traced .* give concrete times"),
+        (lambda ts: mfmjax.moving_final_states(model, sig, 5.0, ts), jnp.asarray([10.0]),
+         f"moving_final_states\\(\\) {host}"),
+        (lambda y: mfmjax.resample(np.arange(400) * DT, y, np.asarray(sig.u), dt=0.1).y,
+         np.asarray(sig.y), f"resample\\(\\) {host}"),
+    ]
+    for fn, arg, match in cases:
+        with pytest.raises(TypeError, match=match):
+            jax.jit(fn)(arg)
+    with pytest.raises(ValueError, match=r"scores\(\): h is traced .* pass h_max"):
+        jax.grad(lambda h: mfmjax.scores(sig, Structure(2, 0), h=h, N=3.0, M=3.0)["E"])(4.0)
+    # a window of stacked records under vmap: its sample indices from the host dt (the
+    # traced dt gave TracerBoolConversionError), each record's window its own
+    other = mfmjax.Model.from_coefficients([2.2, 3.0, 1.0], [[1.0]])  # E far above rounding
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), sig, sig)
+    E = jax.vmap(lambda s: mfmjax.observe(other, s.window(1.0, 15.0)).E)(stacked)
+    np.testing.assert_allclose(np.asarray(E), float(mfmjax.observe(other, sig.window(1.0, 15.0)).E),
+                               rtol=1e-10)
+
+
+def test_derivative_orders_kernels_and_solves_are_checked():
+    """Silent wrong answers the audit found: phi(i=-1) returned zeros and phi_integral(i=-1)
+    the i = 0 integral; kernel_weights cut the weights off at a `length` shorter than the
+    support (sum 5.7e-5 against 7.9e-4), returned NaN at dt = 0 and zeros at dt < 0, and took
+    a negative delay; closed_form returned float32 for float32 input; constrained_solve and
+    gram leaked lax and attribute errors."""
+    import jax.numpy as jnp
+
+    mf = ModulatingFunction(4, 5, 2.0)
+    for call in (lambda: mfmjax.phi(jnp.linspace(0, 2, 5), mf, -1),
+                 lambda: mfmjax.phi_integral(0.0, 1.0, mf, -1),
+                 lambda: mfmjax.kernel_weights(mf, 1.0, 0.01, "cubic", 0.0, 220)):
+        with pytest.raises(ValueError, match=r"i, the derivative order, must be a Python "
+                                             r"integer >= 0"):
+            call()
+    for args, match in (((0, 0.01, "cubic", 0.0, 50), "length=50 is shorter than the support "
+                                                      ".* it needs 201 samples"),
+                        ((1, 0.0, "cubic", 0.0, 220), "dt must be a finite number > 0"),
+                        ((1, -0.01, "cubic", 0.0, 220), "dt must be a finite number > 0"),
+                        ((1, 0.01, "cubic", -0.5, 220), "delay must be >= 0")):
+        with pytest.raises(ValueError, match=rf"kernel_weights\(\): {match}"):
+            mfmjax.kernel_weights(mf, *args)
+    # at the support's own length the weights hold the whole profile: their sum is the
+    # integral of r^N (1 - r)^M over [0, 1], B(N+1, M+1) = N! M! / (N + M + 1)!
+    w = mfmjax.kernel_weights(mf, 0, 0.01, "cubic", 0.0, 201)
+    assert float(w.sum()) == pytest.approx(math.factorial(4) * math.factorial(5)
+                                           / math.factorial(10), rel=1e-12)
+    G = np.diag([2.0, 1.0, 3.0]).astype(np.float32)
+    assert mfmjax.closed_form(G, np.ones(3, np.float32)).dtype == np.float64
+    with pytest.raises(ValueError, match=r"constrained_solve\(\): G must be square \(p, p\), "
+                                         r"eta and active \(p,\); got G \(3, 3\), eta \(4,\)"):
+        mfmjax.constrained_solve(np.eye(3), np.ones(4), np.ones(3, bool))
+    with pytest.raises(TypeError, match=r"gram\(\): give the ModulatedSignals"):
+        mfmjax.gram(np.ones((5, 5)))
