@@ -293,6 +293,21 @@ def _names_note(model, sig) -> None:
               f"{', '.join(sig.input_names)}: check the columns and their order", file=sys.stderr)
 
 
+def _model_settings_note(args, model) -> None:
+    """On stderr: --delays or --intersample given to validate/report differ from the saved
+    model's, which are used (they were ignored without a word)."""
+    for option, given, own in (
+            ("--delays", args.delays and _floats(args.delays, "delays"),
+             [float(v) for v in np.asarray(model.delays)]),
+            ("--intersample", args.intersample and [v.strip() for v in
+                                                     args.intersample.split(",")],
+             list(model.intersample))):
+        if given and list(given) != own:
+            print(f"note: {option} {','.join(map(str, given))} is not used: the model's own "
+                  f"({','.join(f'{v:g}' if isinstance(v, float) else v for v in own)}) are, "
+                  "as it was identified with them", file=sys.stderr)
+
+
 def _cmd_identify(args):
     import mfmjax
 
@@ -796,6 +811,7 @@ def _cmd_validate(args):
         print(f"observer      the first {ob:g} of the window (x0 from those samples only)")
         print("x0            " + " ".join(f"{v:.6e}" for v in res["x0"]))
     _names_note(model, sig)
+    _model_settings_note(args, model)
 
 
 def _plot_validation(sig, k0, y, y_sim, fit, path):
@@ -856,6 +872,7 @@ def _cmd_report(args):
     print(f"wrote {', '.join(os.path.basename(f) for f in files.values())} and report.json "
           f"to {args.o}")
     _names_note(model, sig)
+    _model_settings_note(args, model)
 
 
 def main(argv=None) -> int:

@@ -545,9 +545,12 @@ class Signals(eqx.Module):
             [("time", time)] if time is not None else []
         ):
             if name not in columns:
+                headless = bool(available) and all(_is_number(c) for c in available)
                 raise ValueError(
                     f"{source}: unknown column {name!r} for {role}; available: {available}"
-                )
+                    + ("; the first line holds numbers, so the file has no header: give the "
+                       "column names (names=[...], or --names on the command line)"
+                       if headless else ""))
         if time is None and dt is None:
             raise ValueError(f"{source}: give a time column (time=...) or the sampling interval dt")
         arrays = {}
@@ -602,6 +605,10 @@ class Signals(eqx.Module):
                                 source="DataFrame", **kwargs)
 
 
+_COMMENT = ("{path}: line {line} starts with '#'; mfmjax reads no comment lines: remove them "
+            "(a header written by numpy.savetxt needs comments='')")
+
+
 def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     """Read a table of numbers into {name: float64 array}; clear errors on bad cells.
 
@@ -629,6 +636,8 @@ def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     first_line, rest = _first_line(text)
     if first_line is None:
         raise ValueError(f"{path}: the file is empty; expected a header row")
+    if first_line.lstrip().startswith("#"):
+        raise ValueError(_COMMENT.format(path=path, line=1))
     comma = "," in first_line
     if not comma and ";" in first_line:
         raise ValueError(
@@ -652,6 +661,8 @@ def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         rows = []
         lines = (ln for ln in body.splitlines() if ln.strip())
         for lineno, line in enumerate(lines, start=first):
+            if line.lstrip().startswith("#"):
+                raise ValueError(_COMMENT.format(path=path, line=lineno))
             row = split(line)
             if len(row) != len(header):
                 raise ValueError(

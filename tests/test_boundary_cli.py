@@ -398,6 +398,11 @@ def test_demo_results_json_is_strict_when_no_prediction(tmp_path, capsys):
         (b"\x89PNG\r\n\x1a\n" + bytes(100), "binary file"),
         (b"t;y;u\n0;1,5;2\n1;2,5;3\n", "separated by ';'"),
         ("t,y,u\n0,1,2\n1,2,\xe93\n".encode("latin-1"), r"not a UTF-8 text file \(byte 0xe9"),
+        # comment lines (numpy.savetxt's default header) and a file without a header: said
+        # (they read "line 2 has 3 fields but the header has 2 columns" and "unknown column
+        # 'y'; available: ['0.00', '9.000', '129.320']")
+        (b"# t,y,u\n0,1,2\n1,2,3\n", r"line 1 starts with '#'; .* comments=''"),
+        (b"t,y,u\n0,1,2\n# pause\n1,2,\n", r"line 3 starts with '#'"),
     ],
 )
 def test_csv_binary_and_semicolon(tmp_path, content, match):
@@ -406,6 +411,16 @@ def test_csv_binary_and_semicolon(tmp_path, content, match):
     with pytest.raises(ValueError, match=match):
         _signals.read_csv(p)
     with pytest.raises(ValueError, match=match):
+        mfmjax.Signals.from_csv(p, output="y", inputs=["u"], dt=1.0)
+
+
+def test_csv_without_a_header_is_said(tmp_path):
+    """Its first row of numbers reads as column names: the unknown-column error says so (a
+    DaISy .dat file read "available: ['0.00', '9.000', '129.320']" and nothing more)."""
+    p = tmp_path / "x.csv"
+    p.write_bytes(b"0.00,9.0,129.3\n2.00,9.0,129.5\n")
+    with pytest.raises(ValueError, match=r"unknown column 'y' .* the first line holds "
+                                         r"numbers, so the file has no header"):
         mfmjax.Signals.from_csv(p, output="y", inputs=["u"], dt=1.0)
 
 

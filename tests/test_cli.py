@@ -155,6 +155,13 @@ def test_validate_and_report_say_when_the_columns_differ_from_the_models(csv_fil
             in capsys.readouterr().err)
     assert main(["report", *common, "--inputs", "u2,u1", "-o", str(tmp_path / "rep")]) == 0
     assert "these data are temp <- u2, u1" in capsys.readouterr().err
+    # --delays and --intersample other than the model's are said not to be used (the model's
+    # are); they were ignored without a word
+    assert main(["validate", *common, "--inputs", "u1,u2", "--delays", "0.5,0",
+                 "--intersample", "zoh,zoh"]) == 0
+    err = capsys.readouterr().err
+    assert "note: --delays 0.5,0.0 is not used: the model's own (0,0) are" in err
+    assert "note: --intersample zoh,zoh is not used: the model's own (foh,zoh) are" in err
 
 
 def test_validate_and_report_use_the_validation_lines_observer(tmp_path, capsys):

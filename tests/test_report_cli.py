@@ -59,8 +59,12 @@ def test_report_writes_figures_and_json(files, capsys):
     rep = json.loads((out / "report.json").read_text())
     sig = mfmjax.Signals.from_csv(folder / "data.csv", output="temp", inputs=["valve"],
                                   time="t", intersample="zoh")
-    cmp = mfmjax.compare(model, sig, (10.0, 59.95))
-    res = mfmjax.residuals(model, sig, (10.0, 59.95), lags=20)
+    # the state from the observer over the first 20 % of the window, as the CLI's validation
+    # lines (the Python functions' default is the whole window)
+    ob = 0.2 * (59.95 - 10.0)
+    cmp = mfmjax.compare(model, sig, (10.0, 59.95), observer_window=ob)
+    res = mfmjax.residuals(model, sig, (10.0, 59.95), lags=20, observer_window=ob)
+    assert rep["observer_window"] == pytest.approx(ob, rel=1e-12)
     assert rep["fit"] == pytest.approx(cmp.fit, rel=1e-12)
     assert rep["window"] == [pytest.approx(10.0), pytest.approx(59.95)]
     assert rep["residuals"]["lags"] == 20 and rep["residuals"]["N"] == res.e.size
