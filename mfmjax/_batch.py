@@ -39,7 +39,9 @@ def as_records(fn: str, signals) -> tuple[list, bool]:
     layout (a batch of records; ValueError naming the first record that differs)."""
     if isinstance(signals, Signals):
         return [signals], True
-    if not isinstance(signals, list | tuple) or not signals or \
+    if isinstance(signals, list | tuple) and not signals:
+        raise ValueError(f"{fn}(): the list of records is empty; give at least one Signals")
+    if not isinstance(signals, list | tuple) or \
             not all(isinstance(r, Signals) for r in signals):
         raise TypeError(f"{fn}(): signals must be a Signals or a list of Signals of one "
                         f"layout (a batch of records), got {type(signals).__name__}")

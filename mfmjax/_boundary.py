@@ -44,6 +44,11 @@ def number(fn: str, name: str, value, *, lo=None, hi=None, lo_open: bool = False
     Returns a Python float (or the tracer itself when `traced` allows one)."""
     if traced and is_traced(value):
         return value
+    if is_traced(value):
+        raise TypeError(f"{fn}(): {name} is traced (inside jax.jit/jax.vmap/jax.grad), but it "
+                        f"must be a concrete number here (it sets a length, a grid or a "
+                        f"check on the host); pass it from outside the transformation"
+                        f"{'; ' + fix if fix else ''}")
     if isinstance(value, (bool, np.bool_)) or isinstance(value, (str, bytes)):
         raise TypeError(f"{fn}(): {name} must be a number, got {type(value).__name__} "
                         f"{_show(value)}{'; ' + fix if fix else ''}")

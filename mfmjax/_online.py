@@ -1268,6 +1268,13 @@ class OnlineIdentifier:
 
     def model(self, number: int = -1) -> Model:
         """A model record as a `Model` (default: the current one)."""
+        count = len(self.models)
+        if isinstance(number, bool) or not isinstance(number, int | np.integer) \
+                or not -count <= number < count:
+            raise (IndexError if count else ValueError)(
+                f"OnlineIdentifier.model(): number={number!r} names no model; there are "
+                f"{count} (0..{count - 1}, or -1 for the current one)" if count else
+                "OnlineIdentifier.model(): no model has been accepted yet")
         rec = self.models[number]
         c = self.state.config
         return Model.from_coefficients(

@@ -51,6 +51,9 @@ def atomic_write(path, data: bytes) -> None:
     """
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):  # else the error names the temporary file, not `path`
+        raise FileNotFoundError(f"cannot write {path}: the folder {folder} does not exist; "
+                                "create it first")
     try:
         mode = os.stat(path).st_mode & 0o777
     except OSError:

@@ -495,3 +495,24 @@ def test_derivative_orders_kernels_and_solves_are_checked():
         mfmjax.constrained_solve(np.eye(3), np.ones(4), np.ones(3, bool))
     with pytest.raises(TypeError, match=r"gram\(\): give the ModulatedSignals"):
         mfmjax.gram(np.ones((5, 5)))
+
+
+def test_audit_messages_name_the_problem(data, fitted, tmp_path):
+    """The audit's partly clear messages: a traced number said "must be a real number, got
+    DynamicJaxprTracer"; an empty list of records "got list"; `save_model` into a missing
+    folder named its temporary file; `OnlineIdentifier.model(99)` a bare IndexError."""
+    model, sig = data
+    with pytest.raises(TypeError, match=r"simulate\(\): dt is traced .* pass it from outside"):
+        jax.jit(lambda dt: mfmjax.simulate(model, np.asarray(sig.u), dt=dt))(DT)
+    for fn in (mfmjax.srivc, mfmjax.output_error):
+        with pytest.raises(ValueError, match=r"the list of records is empty"):
+            fn([], fitted)
+    with pytest.raises(ValueError, match=r"estimate\(\): the list of records is empty"):
+        mfmjax.estimate([], h=4.0)
+    missing = tmp_path / "no" / "model.json"
+    with pytest.raises(FileNotFoundError, match=rf"cannot write {missing}: the folder .* does "
+                                                r"not exist"):
+        mfmjax.save_model(fitted, missing)
+    ident = mfmjax.OnlineIdentifier(OnlineConfig(dt=1.0, n_inputs=1))
+    with pytest.raises(ValueError, match=r"model\(\): no model has been accepted yet"):
+        ident.model()
