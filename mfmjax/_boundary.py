@@ -230,7 +230,6 @@ EAGER_FIX = {
     "to_scipy": "export a concrete model",
     "to_control": "export a concrete model",
     "save_model": "save a concrete model",
-    "Signals.window": "cut the arrays before the transformation (y[a:b], u[a:b])",
     "Signals.concatenate": "concatenate concrete records before the transformation",
     "Model.from_coefficients": "build the Model from concrete coefficients, then put traced "
                                "ones in with equinox.tree_at (a, b, offset)",

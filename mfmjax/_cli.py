@@ -120,8 +120,9 @@ def _add_data_args(p: argparse.ArgumentParser):
                    "by --intersample, the output linearly; mfmjax.resample)")
     p.add_argument("--detrend", choices=("linear", "constant"),
                    help="remove the least-squares line (or the mean) of the output and of each "
-                   "input over this file's record; the model is then for deviations from them "
-                   "and has no offset term unless --offset (mfmjax.detrend)")
+                   "input, fitted on --identify-window (default: the whole record) and removed "
+                   "from the whole record; the model is then for deviations from them and has "
+                   "no offset term unless --offset (mfmjax.detrend, Trend.apply)")
 
 
 def _add_window_args(p: argparse.ArgumentParser):
@@ -148,20 +149,23 @@ def _identify_part(args, sig):
     return _record_window(args.identify_window, "identify-window", sig)
 
 
-def _observer_window(given, w, sig, option: str) -> float:
-    """The initial-state observer's length on window `w`: `given` (--observer-window), else
-    the first 20 % of the window, the rule of every validation line of the CLI (an observer
-    over the whole window fits the state to the very data it scores: a flattering fit)."""
+def _observer_window(given, w, sig, option: str | None) -> float:
+    """The initial-state observer's length on window `w` (`option`'s, None: the record):
+    `given` (--observer-window), else the first `OBSERVER_FRACTION` (20 %) of the window, the
+    rule of `estimate`'s hold-out blocks and of the CLI's validation lines (an observer over
+    the whole window fits the state to the very data it scores: a flattering fit)."""
     from ._observers import MIN_WINDOW
+    from ._selection import OBSERVER_FRACTION as share
 
     if given is not None:
         return given
-    if round(0.2 * (w[1] - w[0]) / sig.dt) + 1 < MIN_WINDOW:  # the observer's 20 %
-        raise _UserError(f"{option} {w[0]:g},{w[1]:g} is too short: its first 20 % (the "
-                         f"initial-state observer) needs at least {MIN_WINDOW} samples; widen it "
-                         f"to at least {5 * (MIN_WINDOW - 1) * sig.dt:g}, or give "
-                         "--observer-window")
-    return 0.2 * (w[1] - w[0])
+    if round(share * (w[1] - w[0]) / sig.dt) + 1 < MIN_WINDOW:
+        what = (f"{option} {w[0]:g},{w[1]:g}" if option else
+                f"the record ({sig.n_samples} samples; no --window)")
+        raise _UserError(f"{what} is too short: its first {share:.0%} (the initial-state "
+                         f"observer) needs at least {MIN_WINDOW} samples; widen it to at least "
+                         f"{(MIN_WINDOW - 1) * sig.dt / share:g}, or give --observer-window")
+    return share * (w[1] - w[0])
 
 
 def _whole(sig) -> tuple[float, float]:
@@ -296,12 +300,15 @@ def _names_note(model, sig) -> None:
 def _model_settings_note(args, model) -> None:
     """On stderr: --delays or --intersample given to validate/report differ from the saved
     model's, which are used (they were ignored without a word)."""
+    K = model.n_inputs
     for option, given, own in (
             ("--delays", args.delays and _floats(args.delays, "delays"),
              [float(v) for v in np.asarray(model.delays)]),
             ("--intersample", args.intersample and [v.strip() for v in
                                                      args.intersample.split(",")],
              list(model.intersample))):
+        if given and len(given) == 1:  # one value for every input, as Signals takes it
+            given = list(given) * K
         if given and list(given) != own:
             print(f"note: {option} {','.join(map(str, given))} is not used: the model's own "
                   f"({','.join(f'{v:g}' if isinstance(v, float) else v for v in own)}) are, "
@@ -786,7 +793,8 @@ def _cmd_validate(args):
     model = mfmjax.load_model(_model_path(args))
     sig = _load_signals(args)
     window = _window(args.window, "window") if args.window else None
-    ob = _observer_window(args.observer_window, window or _whole(sig), sig, "--window")
+    ob = _observer_window(args.observer_window, window or _whole(sig), sig,
+                          window and "--window")
     obs = mfmjax.observe(model, sig, window, observer_window=ob)
     k0 = 0 if window is None else round((window[0] - sig.t0) / sig.dt)
     y = np.asarray(sig.y)[k0 : k0 + obs.y_sim.shape[0]]
@@ -846,7 +854,8 @@ def _cmd_report(args):
     cov, note = an.saved_covariance(args.model, model)
     sig = _load_signals(args)
     window = _window(args.window, "window") if args.window else None
-    ob = _observer_window(args.observer_window, window or _whole(sig), sig, "--window")
+    ob = _observer_window(args.observer_window, window or _whole(sig), sig,
+                          window and "--window")
     cmp = an.compare(model, sig, window, observer_window=ob)
     res = an.residuals(model, sig, window, observer_window=ob, lags=args.lags)
     step = an.step_response(model, covariance=cov)

@@ -44,7 +44,7 @@ class Estimate(eqx.Module):
 
     model: Model  # the returned model
     start: Model  # the search's winner (the MFM estimate)
-    search: SearchResult  # ranked by the selection rule (hold-out E or BIC)
+    search: SearchResult  # ranked by the selection rule (hold-out E: its E_holdout column, or BIC)
     srivc: SrivcFit | None
     output_error: OutputErrorFit | None
     names: tuple  # free parameters, ordered as std_errors

@@ -139,11 +139,38 @@ def modulated_columns(signals: Signals, structure: Structure, mf: ModulatingFunc
         first = jnp.maximum(first, support_samples(tau + mf.h, dt))
     q = gregory_weights(T, first, dt, end)
     bounds = jnp.concatenate(bounds) * jnp.sqrt(jnp.sum(q))
-    u = signals.u
-    spread = jnp.max(u, axis=0, initial=-jnp.inf) - jnp.min(u, axis=0, initial=jnp.inf)
-    excited = spread > 1e-12 * jnp.maximum(jnp.max(jnp.abs(u), axis=0, initial=0.0), 1e-300)
     fits = first <= length - 1
-    return ModulatedSignals(jnp.concatenate(cols, axis=1), q, bounds, first, excited, fits)
+    return ModulatedSignals(jnp.concatenate(cols, axis=1), q, bounds, first,
+                            input_varies(signals.u), fits)
+
+
+def input_varies(u, inside=None):
+    """(K,) bool: input k varies (its spread above 1e-12 of its largest |u|) over the samples
+    that `inside` (T,) marks (default: all of them)."""
+    keep = (lambda x, fill: x) if inside is None else (  # noqa: E731
+        lambda x, fill: jnp.where(inside[:, None], x, fill))
+    spread = (jnp.max(keep(u, -jnp.inf), axis=0, initial=-jnp.inf)
+              - jnp.min(keep(u, jnp.inf), axis=0, initial=jnp.inf))
+    return spread > 1e-12 * jnp.maximum(jnp.max(keep(jnp.abs(u), 0.0), axis=0, initial=0.0),
+                                        1e-300)
+
+
+def steady_input_columns(varies, a_len: int, b_lens, offset: bool):
+    """(p,) bool: the columns of the inputs that do not vary that must be masked, in the
+    layout [a (a_len); b_1 (b_lens[0]); ..; b_K; offset]. A steady input's lag-0 column is
+    its level times the offset column (its derivative columns vanish and are masked as dead
+    anyway): with an offset term, or another steady input before it, the two span one
+    direction and the solve split them at random (b_k0 and the offset at +-1e12 on a DaISy
+    record), so the input is masked and the offset (or the first steady input's b_k0) takes
+    the level; without one, its b_k0 carries its steady contribution and stays."""
+    K = len(b_lens)
+    owner = np.repeat(np.arange(-1, K + 1), [a_len, *b_lens, int(offset)])
+    if K == 0:
+        return jnp.zeros(owner.shape, bool)
+    steady = ~varies
+    first = steady & (jnp.cumsum(steady) == 1)
+    masked = steady & (~first if not offset else True)
+    return (owner >= 0) & (owner < K) & masked[np.clip(owner, 0, K - 1)]
 
 
 def feedthrough_corrections(

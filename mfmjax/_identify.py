@@ -15,6 +15,7 @@ from ._gram import (
     feedthrough_corrections,
     gram_matrix,
     modulated_columns,
+    steady_input_columns,
 )
 from ._jit import jit
 from ._linalg import hurwitz
@@ -101,13 +102,8 @@ def identify_core(signals, structure, mf, eta, length: int, end=None,
     K = signals.n_inputs
     n = structure.n
     alive = jnp.sqrt(jnp.maximum(jnp.diagonal(G), 0.0)) > DEAD_COLUMN_RTOL * ms.bounds
-    # an input that does not vary has no gain to identify: all its columns are masked (its
-    # lag-0 column, u_k times the integral of phi, is the offset column's multiple, and
-    # with the offset term both entered a null direction: b_k0 and the offset at +-1e12)
-    if K:
-        owner = np.repeat(np.arange(-1, K + 1), [n + 1, *[mk + 1 for mk in structure.m],
-                                                 int(signals.offset)])
-        alive = alive & ((owner < 0) | (owner >= K) | ms.excited[np.clip(owner, 0, K - 1)])
+    alive = alive & ~steady_input_columns(ms.excited, n + 1, [mk + 1 for mk in structure.m],
+                                          signals.offset)
     theta, cond, reduced = constrained_solve(G, eta, alive)
     corrections = feedthrough_corrections(signals, structure, mf, length=length)
     if corrections:  # m_k = n: remove D_k * Delta_k from the output columns, re-solve

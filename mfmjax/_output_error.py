@@ -213,10 +213,7 @@ def _eager_only(signals: Signals, model) -> None:
     if not isinstance(model, Model):
         raise TypeError(f"output_error(): model must be a Model (e.g. from identify), got "
                         f"{type(model).__name__}")
-    _b.eager_only("output_error", signals)
-    if _b.is_traced(model.a):
-        raise TypeError("output_error(): the start model is traced; give a concrete model "
-                        f"(outside jax.jit/jax.vmap): {_b.EAGER_FIX['output_error']}")
+    _b.eager_only("output_error", signals, model)
 
 
 def _output_error_batch(signals, model, window, max_steps, rtol, atol) -> list:

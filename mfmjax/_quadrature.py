@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._boundary import require_x64
+from ._boundary import is_traced, require_x64
 from ._modulating import ModulatingFunction, derivative_order, phi_scaled
 
 RULES = ("zoh", "foh", "cubic")
@@ -107,7 +107,7 @@ def kernel_weights(mf: ModulatingFunction, i: int, dt: float, rule: str, delay, 
     """
     require_x64("kernel_weights")
     i = derivative_order("kernel_weights", i)
-    concrete = lambda x: not isinstance(x, jax.core.Tracer)  # noqa: E731
+    concrete = lambda x: not any(is_traced(v) for v in jax.tree.leaves(x))  # noqa: E731
     if concrete(dt) and not (math.isfinite(float(dt)) and float(dt) > 0):
         raise ValueError(f"kernel_weights(): dt must be a finite number > 0, got {dt!r}")
     if concrete(delay) and np.any(np.asarray(delay) < 0):

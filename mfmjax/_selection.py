@@ -31,9 +31,9 @@ class HoldoutSearch(NamedTuple):
     """`holdout_search`'s result. `fitted`: per fold, the candidates identified without its
     hold-out window (E, fit on that window); `E`: each candidate's mean hold-out E over the
     folds; `refit`: the same candidates identified on all estimation windows, ranked by `E`,
-    with its E and fit columns the mean hold-out E and fit % (what the ranking reads; J, AIC
-    and BIC are the refit's own); `folds`: per fold ((fit windows), hold-out window) in time
-    units."""
+    which its columns `E_holdout` and `fit_holdout` hold (mean hold-out E and fit %; E, fit,
+    J, AIC and BIC are the refit's own); `folds`: per fold ((fit windows), hold-out window)
+    in time units."""
 
     fitted: tuple
     E: np.ndarray
@@ -125,11 +125,11 @@ def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
         fit = np.mean([x.columns["fit"] for x in per_fold], axis=0)
         c = per_fold[-1].columns
         rank = ranking(E, c["n"] + np.sum(c["m"] + 1, axis=1), ~np.isfinite(E), None)
-        # the table a user reads shows the scores it is ranked by: the refit's own E and
-        # fit % are on a block it was fitted on (rank 1 read E 4861 / fit 87 % under rank 9's
+        # the scores it is ranked by, for the table a user reads: the refit's own E and fit %
+        # are on a block it was fitted on (rank 1 read E 4861 / fit 87 % under rank 9's
         # 997 / 94 % on the DaISy heating system)
-        held = dict(refit.columns, E=np.where(np.isfinite(E), E, np.nan),
-                    fit=np.where(np.isfinite(E), fit, np.nan))
+        held = dict(refit.columns, E_holdout=np.where(np.isfinite(E), E, np.nan),
+                    fit_holdout=np.where(np.isfinite(E), fit, np.nan))
         out.append(HoldoutSearch(tuple(replace_fields(x, rank=rank) for x in per_fold), E,
                                  replace_fields(refit, rank=rank, columns=held), fold_windows,
                                  est))

@@ -605,8 +605,8 @@ class Signals(eqx.Module):
                                 source="DataFrame", **kwargs)
 
 
-_COMMENT = ("{path}: line {line} starts with '#'; mfmjax reads no comment lines: remove them "
-            "(a header written by numpy.savetxt needs comments='')")
+_COMMENT = ("{path}: line {line} starts with '#'; mfmjax reads no comment lines after the "
+            "header: remove them")
 
 
 def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
@@ -636,8 +636,8 @@ def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     first_line, rest = _first_line(text)
     if first_line is None:
         raise ValueError(f"{path}: the file is empty; expected a header row")
-    if first_line.lstrip().startswith("#"):
-        raise ValueError(_COMMENT.format(path=path, line=1))
+    if first_line.lstrip().startswith("#") and names is None:
+        first_line = first_line.lstrip()[1:]  # numpy.savetxt's header: "# t,y,u"
     comma = "," in first_line
     if not comma and ";" in first_line:
         raise ValueError(

@@ -398,11 +398,9 @@ def test_demo_results_json_is_strict_when_no_prediction(tmp_path, capsys):
         (b"\x89PNG\r\n\x1a\n" + bytes(100), "binary file"),
         (b"t;y;u\n0;1,5;2\n1;2,5;3\n", "separated by ';'"),
         ("t,y,u\n0,1,2\n1,2,\xe93\n".encode("latin-1"), r"not a UTF-8 text file \(byte 0xe9"),
-        # comment lines (numpy.savetxt's default header) and a file without a header: said
-        # (they read "line 2 has 3 fields but the header has 2 columns" and "unknown column
-        # 'y'; available: ['0.00', '9.000', '129.320']")
-        (b"# t,y,u\n0,1,2\n1,2,3\n", r"line 1 starts with '#'; .* comments=''"),
-        (b"t,y,u\n0,1,2\n# pause\n1,2,\n", r"line 3 starts with '#'"),
+        # a comment line in the data: said by its number (a file with comment lines read
+        # "line 2 has 3 fields but the header has 2 columns")
+        (b"t,y,u\n0,1,2\n# pause\n1,2,\n", r"line 3 starts with '#'; .* remove them"),
     ],
 )
 def test_csv_binary_and_semicolon(tmp_path, content, match):
@@ -412,6 +410,14 @@ def test_csv_binary_and_semicolon(tmp_path, content, match):
         _signals.read_csv(p)
     with pytest.raises(ValueError, match=match):
         mfmjax.Signals.from_csv(p, output="y", inputs=["u"], dt=1.0)
+
+
+def test_csv_header_of_numpy_savetxt_is_read(tmp_path):
+    """numpy.savetxt writes its header as a comment ("# t,y,u"): the names are read without
+    the '#' (the first column was named '# t')."""
+    p = tmp_path / "x.csv"
+    p.write_bytes(b"# t,y,u\n0,1,2\n1,2,3\n")
+    assert list(_signals.read_csv(p)) == ["t", "y", "u"]
 
 
 def test_csv_without_a_header_is_said(tmp_path):

@@ -87,26 +87,45 @@ def test_constant_input_flagged_not_nan():
 
 
 def test_a_steady_input_is_masked_and_its_level_goes_to_the_offset():
-    """An input held constant has no gain to identify: `identify` and `search` mask all its
-    columns (b = 0, status no_excitation). With an offset term, its lag-0 column is the
-    offset column's multiple: before, the two entered a null direction of G and came back
-    split at random (here b_20 = 0.41 with offset 1.24 from `identify`, -0.033 and 3.90 from
-    `search`; on the DaISy heating system with a constant input, +-1e12). Now the offset takes
-    the input's steady contribution: 0.7 + 0.5 x 6 = 3.7 (noise-free data: the MFM estimate to
-    its quadrature error, 1e-6 relative), and the search's candidate equals `identify`'s."""
-    true = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0], [0.5]], offset=0.7)
+    """An input held constant: its lag-0 column is its level times the offset column. With an
+    offset term the two entered a null direction of G and came back split at random (here
+    b_20 = 0.41 with offset 1.24 from `identify`, -0.033 and 3.90 from `search`; on the DaISy
+    heating system with a constant input, +-1e12): now `identify` and `search` mask the
+    input (b_2 = 0, status no_excitation) and the offset takes its steady contribution,
+    0.7 + 0.5 x 6 = 3.7. Without an offset term b_20 carries it and stays: 0.5 (a first
+    version of the mask took it too and returned a wrong model, a_1 = 6.5). Noise-free data:
+    the MFM estimate to its quadrature error, 1e-6 relative; the search's candidate equals
+    `identify`'s (the same solve, 1e-9). With `identify=` windows the search judges the input
+    on them, as `identify` on the window's record: u_2 moves only outside the window."""
     dt, T = 0.02, 1500
     t = np.arange(T) * dt
     u = np.stack([np.sin(0.9 * t) + 0.4 * np.cos(2.9 * t), np.full(T, 6.0)], 1)
-    sig = Signals(np.asarray(mfmjax.simulate(true, u, None, dt=dt)), u, dt=dt, offset=True)
+    st, mf = Structure(2, (0, 0)), ModulatingFunction(3, 4, 1.5)
+    for offset, truth in ((0.7, [2.0, 3.0, 1.0, 0.0, 3.7]), (None, [2.0, 3.0, 1.0, 0.5, 0.0])):
+        true = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0], [0.5]], offset=offset)
+        sig = Signals(np.asarray(mfmjax.simulate(true, u, None, dt=dt)), u, dt=dt,
+                      offset=offset is not None)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = mfmjax.identify(sig, st, mf)
+        assert int(model.status) & mfmjax.Status.NO_EXCITATION
+        got = [*np.asarray(model.a)[:2], float(model.b[0][0]), float(model.b[1][0]),
+               float(model.offset)]
+        np.testing.assert_allclose(got, truth, rtol=1e-6, atol=1e-6)
+        best = mfmjax.search(sig, n=(2,), m=[(0,), (0,)], N=(3,), M=(4,), h=(1.5,)).best(0)
+        np.testing.assert_allclose(np.asarray(best.theta), np.asarray(model.theta), rtol=1e-9,
+                                   atol=1e-12)
+    # u_2 steps outside an identification window [0, 20]: the search on that window masks it
+    # as `identify` on the window's own record does (both with the offset term)
+    u2 = u.copy()
+    u2[1200:, 1] = 7.0
+    true = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0], [0.5]], offset=0.7)
+    sig = Signals(np.asarray(mfmjax.simulate(true, u2, None, dt=dt)), u2, dt=dt, offset=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        model = mfmjax.identify(sig, Structure(2, (0, 0)), ModulatingFunction(3, 4, 1.5))
-    assert int(model.status) & mfmjax.Status.NO_EXCITATION
-    assert float(model.b[1][0]) == 0.0
-    np.testing.assert_allclose([*np.asarray(model.a)[:2], float(model.b[0][0]),
-                                float(model.offset)], [2.0, 3.0, 1.0, 3.7], rtol=1e-6)
-    best = mfmjax.search(sig, n=(2,), m=[(0,), (0,)], N=(3,), M=(4,), h=(1.5,)).best(0)
-    assert float(best.b[1][0]) == 0.0
+        model = mfmjax.identify(sig.window(0.0, 20.0), st, mf)
+    best = mfmjax.search(sig, n=(2,), m=[(0,), (0,)], N=(3,), M=(4,), h=(1.5,),
+                         identify=[(0.0, 20.0)]).best(0)
+    assert float(model.b[1][0]) == float(best.b[1][0]) == 0.0
     np.testing.assert_allclose(np.asarray(best.theta), np.asarray(model.theta), rtol=1e-9,
                                atol=1e-12)

@@ -234,8 +234,8 @@ def test_list_of_records_equals_one_at_a_time():
                     intersample=MODES, offset=True)
     with pytest.raises(ValueError, match="srivc\\(\\): record 1 differs from record 0"):
         mfmjax.srivc([sigs[0], short], starts[0])
-    with pytest.raises(TypeError, match="srivc\\(\\): signals must be a Signals or a list"):
-        mfmjax.srivc([], starts[0])
+    with pytest.raises(ValueError, match="srivc\\(\\): the list of records is empty"):
+        mfmjax.srivc([], starts[0])  # said so (it read "must be a Signals or a list ..., got list")
 
 
 def test_unstable_start_gives_status_not_nan(noisy):

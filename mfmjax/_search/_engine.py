@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _batch
+from .._gram import input_varies, steady_input_columns
 from .._identify import FEEDTHROUGH_STEPS
 from .._jit import RUN_ONCE_OPTIONS, jit
 from .._quadrature import edge_padded
@@ -50,19 +51,18 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
     p = n_max + 1 + sum(mk + 1 for mk in m_max) + int(sig.offset)
     n_src, Q = len(static.sources), static.degree + 1
     finite = jnp.isfinite(sig.y).all() & jnp.isfinite(sig.u).all()
-    spread = jnp.max(sig.u, axis=0, initial=-jnp.inf) - jnp.min(sig.u, axis=0, initial=jnp.inf)
-    varies = spread > 1e-12 * jnp.maximum(jnp.max(jnp.abs(sig.u), axis=0, initial=0.0), 1e-300)
+    # over the identification windows only, as `identify` on the window's own record
+    idx = jnp.arange(sig.u.shape[0])
+    segs = where["segments"]
+    inside = jnp.any((idx[:, None] >= segs[None, :, 0]) & (idx[:, None] < segs[None, :, 1]),
+                     axis=1)
+    varies = input_varies(sig.u, inside)
     excited = jnp.all(varies)
     hpow_i = jnp.asarray(static.col_deriv, dtype=jnp.float64)
     src_of = np.asarray(static.col_source)
     pad = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])  # b blocks in the padded layout
 
-    # the input owning each column of the padded layout (-1: output, K: offset): an input
-    # that does not vary has all its columns masked, as in `identify`
-    owner = np.repeat(np.arange(-1, K + 1), [n_max + 1, *[mk + 1 for mk in m_max],
-                                             int(sig.offset)])
-    steady = ((owner >= 0) & (owner < K) & ~varies[np.clip(owner, 0, K - 1)] if K
-              else np.zeros(p, bool))
+    steady = steady_input_columns(varies, n_max + 1, [mk + 1 for mk in m_max], sig.offset)
 
     def one_nm(H, W, scale, h, coef):
         Cf = coef * (h ** (-hpow_i))[:, None, None]  # (p_ext, sources, Q)

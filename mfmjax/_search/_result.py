@@ -63,7 +63,8 @@ class SearchResult(eqx.Module):
             "a": [float(v) for v in c["a"][j][: n + 1]],
             "b": [[float(v) for v in c["b"][j][k][: m[k] + 1]] for k in range(len(m))],
             "offset": float(c["offset"][j]) if self.has_offset else None,
-        }
+        } | ({"E_holdout": finite_or_none(c["E_holdout"][j]),
+              "fit_holdout": finite_or_none(c["fit_holdout"][j])} if HELD in c else {})
 
     def best(self, i: int = 0, *, device: bool = True) -> Model:
         """The candidate of rank `i` as a `Model` (parameters exactly as searched);
@@ -97,16 +98,20 @@ class SearchResult(eqx.Module):
         )
 
     def table(self, top: int = 10) -> str:
-        """Readable table of the best `top` candidates."""
+        """Readable table of the best `top` candidates (a hold-out search, `estimate`'s: its
+        held-out E and fit %, which it is ranked by, in place of the in-sample ones)."""
+        held = HELD in self.columns
+        E, fit = ("E_holdout", "fit_holdout") if held else ("E", "fit")
         head = (f"{'rank':>4} {'n':>2} {'m':>8} {'N':>4} {'M':>4} {'h':>9} {'delays':>14} "
-                f"{'J':>10} {'E':>11} {'fit%':>8} {'aic':>10} {'bic':>10}  status")
+                f"{'J':>10} {'E held-out' if held else 'E':>11} "
+                f"{'fit% h-o' if held else 'fit%':>8} {'aic':>10} {'bic':>10}  status")
         lines = [head]
         for i in range(min(top, len(self))):
             r = self.row(i)
             lines.append(
                 f"{r['rank']:>4} {r['n']:>2} {','.join(map(str, r['m'])):>8} {r['N']:>4} "
                 f"{r['M']:>4} {r['h']:>9.4g} {','.join(f'{d:g}' for d in r['delays']):>14} "
-                f"{_fmt(r['J'], '.3e'):>10} {_fmt(r['E'], '.4e'):>11} {_fmt(r['fit'], '.2f'):>8} "
+                f"{_fmt(r['J'], '.3e'):>10} {_fmt(r[E], '.4e'):>11} {_fmt(r[fit], '.2f'):>8} "
                 f"{_fmt(r['aic'], '.1f'):>10} {_fmt(r['bic'], '.1f'):>10}  {r['status']}"
             )
         return "\n".join(lines)
@@ -143,6 +148,9 @@ def _compact_theta(theta_pad, n, m, res: SearchResult):
 
 def _fmt(v, spec):
     return "-" if v is None else format(v, spec)
+
+
+HELD = "E_holdout"  # a hold-out search's column (`_selection.holdout_search`)
 
 
 def ranking(key, n_par, bad, tie: float | None) -> np.ndarray:
