@@ -300,15 +300,12 @@ def _names_note(model, sig) -> None:
 def _model_settings_note(args, model) -> None:
     """On stderr: --delays or --intersample given to validate/report differ from the saved
     model's, which are used (they were ignored without a word)."""
-    K = model.n_inputs
     for option, given, own in (
             ("--delays", args.delays and _floats(args.delays, "delays"),
              [float(v) for v in np.asarray(model.delays)]),
             ("--intersample", args.intersample and [v.strip() for v in
                                                      args.intersample.split(",")],
              list(model.intersample))):
-        if given and len(given) == 1:  # one value for every input, as Signals takes it
-            given = list(given) * K
         if given and list(given) != own:
             print(f"note: {option} {','.join(map(str, given))} is not used: the model's own "
                   f"({','.join(f'{v:g}' if isinstance(v, float) else v for v in own)}) are, "
