@@ -164,7 +164,8 @@ def _observer_window(given, w, sig, option: str | None) -> float:
                 f"the record ({sig.n_samples} samples; no --window)")
         raise _UserError(f"{what} is too short: its first {share:.0%} (the initial-state "
                          f"observer) needs at least {MIN_WINDOW} samples; widen it to at least "
-                         f"{(MIN_WINDOW - 1) * sig.dt / share:g}, or give --observer-window")
+                         f"{(MIN_WINDOW - 1) * sig.dt / share:g}, or give --observer-window"
+                         f" (windows are times, not sample numbers: dt = {sig.dt:g})")
     return share * (w[1] - w[0])
 
 

@@ -93,7 +93,10 @@ def _one_line_error(capsys, code, argv, match):
         ("validate", "--window", "x", "--window: expected comma-separated numbers"),
         # its observer's 20 %: 2 samples (the message used to name observer_window, which the
         # CLI user never gave)
-        ("identify", "--validate-window", "10,10.05", "--validate-window 10,10.05 is too short"),
+        ("identify", "--validate-window", "10,10.05", "--validate-window 10,10.05 is too short: "
+         "its first 20% (the initial-state observer) needs at least 8 samples; widen it to at "
+         "least 0.35, or give --observer-window (windows are times, not sample numbers: "
+         "dt = 0.01)"),
     ],
 )
 def test_option_errors_are_one_line_exit_2(files, capsys, command, option, value, match):
