@@ -81,8 +81,7 @@ def _check(model, signals, fn):
         raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}")
     if not isinstance(signals, Signals):
         raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}")
-    if fn in _b.EAGER_FIX:
-        _b.eager_only(fn, signals, model)
+    _b.eager_only(fn, signals, model)  # compare, residuals: host-side comparisons
     if model.n_inputs != signals.n_inputs:
         raise ValueError(f"{fn}(): the model has {model.n_inputs} inputs but the signals have "
                          f"{signals.n_inputs}; pass the inputs the model was identified with")
