@@ -12,7 +12,7 @@ import numpy as np
 from ._gram import (
     check_record_length,
     compiled_length,
-    feedthrough_columns,
+    feedthrough_corrections,
     gram_matrix,
     modulated_columns,
     steady_input_columns,
@@ -69,33 +69,6 @@ def _fmt(v):
     return v.tolist()
 
 
-ORDER_BUCKETS = (2, 4, 8)  # identify's programs pad the orders up to one of these
-
-
-def order_bucket(n: int) -> int:
-    """The padded order of `identify`'s program for output order n (n itself beyond 8)."""
-    return next((b for b in ORDER_BUCKETS if b >= n), n)
-
-
-def padded_layout(structure: Structure, K: int, offset: bool):
-    """`structure` in the padded column layout of `identify_core`: every signal's derivative
-    orders 0..n_b (n_b = `order_bucket(n)`), [y; u_1; ..; u_K; offset]. Returns (n_b, the
-    positions of the compact theta [a; b_1; ..; b_K; offset] in it (NumPy ints))."""
-    n_b, w = order_bucket(structure.n), order_bucket(structure.n) + 1
-    idx = list(range(structure.n + 1)) + [w * (k + 1) + j for k, mk in enumerate(structure.m)
-                                          for j in range(mk + 1)]
-    if offset:
-        idx.append(w * (K + 1))
-    return n_b, np.asarray(idx)
-
-
-def feedthrough_inputs(signals: Signals, structure: Structure) -> tuple[int, ...]:
-    """Inputs whose output columns `identify` corrects (`feedthrough_corrections`)."""
-    return tuple(k for k in range(signals.n_inputs)
-                 if structure.m[k] == structure.n and not signals.smooth[k]
-                 and signals.output_rule == "cubic")
-
-
 def identify_model(signals, structure, mf, eta, length: int, end=None,
                    labels: tuple[str, tuple[str, ...]] = ("y", ()), *,
                    flag_unstable: bool = False) -> Model:
@@ -103,84 +76,62 @@ def identify_model(signals, structure, mf, eta, length: int, end=None,
     names when empty): `signals` unlabelled, `mf` as values (`as_values`), `length` the static
     kernel length (`compiled_length`), `end` the record's own length when `signals` are padded
     (`bucketed`); `flag_unstable`: set `Status.UNSTABLE` (`identify`). The compiled part
-    (`identify_core`) sees the structure only through its order bucket and feed-through inputs:
-    the orders n, m_k enter as values (the column mask), so every structure of one bucket
-    shares its program. The model is assembled around it from the arguments (no copies of the
-    settings through the program)."""
-    K = signals.n_inputs
-    n_b, idx = padded_layout(structure, K, signals.offset)
-    p_b = (n_b + 1) * (K + 1) + int(signals.offset)
-    mask = np.zeros(p_b, bool)
-    mask[idx] = True
-    if isinstance(eta, jax.core.Tracer):
-        eta_b = jnp.zeros(p_b).at[idx].set(eta)
-    else:
-        eta_b = np.zeros(p_b)
-        eta_b[idx] = np.asarray(eta)
-    out = identify_core(signals, n_b, feedthrough_inputs(signals, structure),
-                        np.int32(structure.n), mask, mf, eta_b, length, end, flag_unstable)
-    traced = any(isinstance(x, jax.core.Tracer) for x in out)
-    if not traced:  # cut to the structure on the host (slicing device arrays would compile)
-        out = jax.device_get(out)
-    a, b, offset, theta, J, J_rel, cond, status = out
-    fields = dict(a=a[: structure.n + 1], b=tuple(b[k, : mk + 1] for k, mk in enumerate(
-        structure.m)), offset=offset, theta=theta[idx], J=J, J_rel=J_rel, cond=cond,
-        status=status)
-    if not traced:
-        fields = jax.device_put(fields)
+    (`identify_core`) returns only what it computes; the model is assembled around it from the
+    arguments (no copies of the settings through the program)."""
+    a, b, offset, theta, J, J_rel, cond, status = identify_core(signals, structure, mf, eta,
+                                                                length, end, flag_unstable)
     output_name, input_names = labels
-    return build(Model, **fields, delays=signals.delays, mf=mf, structure=structure,
+    return build(Model, a=a, b=b, offset=offset, delays=signals.delays, theta=theta, J=J,
+                 J_rel=J_rel, cond=cond, status=status, mf=mf, structure=structure,
                  intersample=signals.intersample, has_offset=signals.offset,
                  output_name=output_name,
-                 input_names=tuple(input_names) or tuple(f"u{k + 1}" for k in range(K)))
+                 input_names=tuple(input_names) or tuple(f"u{k + 1}" for k in range(
+                     signals.n_inputs)))
 
 
 @jit
-def identify_core(signals, n_b: int, ft: tuple, n, mask, mf, eta, length: int, end=None,
+def identify_core(signals, structure, mf, eta, length: int, end=None,
                   flag_unstable: bool = False):
-    """The compiled core of `identify_model` in the padded layout (`padded_layout`: orders
-    0..`n_b` for every signal, the columns beyond the structure's orders outside `mask`,
-    zeroed and left out of the solve, eq. 11): (a (n_b+1,), b (K, n_b+1), offset, theta,
-    J, J_rel, cond, status). `n` (the output order) and `mask` are values: one program per
-    (order bucket, feed-through inputs `ft`, record bucket, kernel bucket). With
-    `flag_unstable`, an A(s) with a root in the closed right half plane sets
-    `Status.UNSTABLE` (the Routh test `hurwitz`, as the search's validation and SRIVC apply
-    it), except where a_n vanished or values are non-finite: those bits already say the
-    coefficients are no model."""
-    K = signals.n_inputs
-    w = n_b + 1
-    ms = modulated_columns(signals, Structure(n_b, [n_b] * K), mf, length, end)
-    ms = eqx.tree_at(lambda m: m.columns, ms, jnp.where(mask, ms.columns, 0.0))
+    """The compiled core of `identify_model`: (a, b, offset, theta, J, J_rel, cond, status).
+    One program per (structure, record bucket, kernel bucket). With `flag_unstable`, an A(s)
+    with a root in the closed right half plane sets `Status.UNSTABLE` (the Routh test
+    `hurwitz`, as the search's validation and SRIVC apply it), except where a_n vanished or
+    values are non-finite: those bits already say the coefficients are no model."""
+    ms = modulated_columns(signals, structure, mf, length, end)
     G = gram_matrix(ms)
+    K = signals.n_inputs
+    n = structure.n
     alive = jnp.sqrt(jnp.maximum(jnp.diagonal(G), 0.0)) > DEAD_COLUMN_RTOL * ms.bounds
-    alive = alive & ~steady_input_columns(ms.excited, w, [w] * K, signals.offset)
-    active = alive & mask
-    theta, cond, reduced = constrained_solve(G, eta, active)
-    if ft:  # m_k = n: remove D_k * Delta_k from the output columns, re-solve
-        deltas = [(k, feedthrough_columns(signals, k, n_b, mf, length)) for k in ft]
-        y_cols = ms.columns[:, :w]
+    alive = alive & ~steady_input_columns(ms.excited, n + 1, [mk + 1 for mk in structure.m],
+                                          signals.offset)
+    theta, cond, reduced = constrained_solve(G, eta, alive)
+    corrections = feedthrough_corrections(signals, structure, mf, length=length)
+    if corrections:  # m_k = n: remove D_k * Delta_k from the output columns, re-solve
+        starts = np.cumsum([n + 1] + [mk + 1 for mk in structure.m])
+        y_cols = ms.columns[:, : n + 1]
         for _ in range(FEEDTHROUGH_STEPS):
             an = jnp.where(theta[n] != 0, theta[n], 1.0)
-            fix = sum(theta[w * (k + 1) + n] / an * delta for k, delta in deltas)
-            fixed = jnp.where(mask[:w], y_cols - fix, 0.0)
-            ms = eqx.tree_at(lambda m: m.columns, ms, ms.columns.at[:, :w].set(fixed))
+            fix = sum(theta[starts[k] + n] / an * delta for k, delta in corrections)
+            ms = eqx.tree_at(lambda m: m.columns, ms, ms.columns.at[:, : n + 1].set(y_cols - fix))
             G = gram_matrix(ms)
-            theta, _, _ = constrained_solve(G, eta, active, conditioning=False)
-        theta, cond, reduced = constrained_solve(G, eta, active)
+            theta, _, _ = constrained_solve(G, eta, alive, conditioning=False)
+        theta, cond, reduced = constrained_solve(G, eta, alive)
     finite = jnp.isfinite(signals.y).all() & jnp.isfinite(signals.u).all()
     status, div, quad, J_rel = finish_solve(theta, G, reduced, n, finite,
-                                            jnp.all(ms.excited) & jnp.all(alive | ~mask),
-                                            n_max=n_b)
+                                            jnp.all(ms.excited) & jnp.all(alive))
     status = status | jnp.where(ms.fits, 0, Status.OUT_OF_BOUNDS)
-    b = theta[w : w * (K + 1)].reshape(K, w) / div
-    offset = theta[w * (K + 1)] / div if signals.offset else jnp.zeros((), jnp.float64)
+    bs, pos = [], n + 1
+    for k in range(K):
+        bs.append(theta[pos : pos + structure.m[k] + 1] / div)
+        pos += structure.m[k] + 1
+    offset = theta[pos] / div if signals.offset else jnp.zeros((), jnp.float64)  # not weak-typed
     J = mf.h ** (mf.N + mf.M + 1) * jnp.sqrt(quad)  # undo the common factor (see _gram)
-    a = theta[:w] / div
+    a = theta[: n + 1] / div
     status = status.astype(jnp.int32)
     if flag_unstable:
         void = (status & int(Status.NONFINITE | Status.A_N_ZERO)) != 0
         status = status | jnp.where(void | hurwitz(a), 0, int(Status.UNSTABLE)).astype(jnp.int32)
-    return a, b, offset, theta, J, J_rel, cond, status
+    return a, tuple(bs), offset, theta, J, J_rel, cond, status
 
 
 def bucketed(signals: Signals):

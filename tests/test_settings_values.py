@@ -71,39 +71,6 @@ def test_identify_new_settings_inside_a_bucket_compile_once(record):
     assert sum("identify_core" in name for name in first) <= 1
 
 
-def test_identify_new_structure_inside_an_order_bucket_compiles_nothing(monkeypatch):
-    """The orders are values: `identify_core` pads every signal's derivative orders to the
-    order bucket (n <= 2, 4, 8) and masks the columns beyond the structure, so a new structure
-    of one bucket and one set of feed-through inputs (m_k = n) compiles nothing. Each padded
-    fit equals the fit of its own structure's columns alone (`order_bucket` switched off)
-    to the rounding of the Gram's sums amplified by the conditioning: 1e-14 * cond(G_eq)."""
-    from mfmjax import _identify
-
-    sig = simulated_experiment(third_order_two_input(), dt=DT, n_samples=900, noise_std=0.02,
-                               seed=5)
-    mf = ModulatingFunction(5, 5, 2.6)
-    mfmjax.identify(sig, Structure(3, [1, 1]), mf)
-    same = [Structure(4, [2, 1]), Structure(3, [0, 2]), Structure(4, [0, 0])]
-    with compiles() as names:
-        padded = [mfmjax.identify(sig, st, mf) for st in same]
-    assert names == [], f"a new structure of the bucket compiled {names}"
-    with compiles() as names:  # m_1 = n: the feed-through correction, a program of its own
-        mfmjax.identify(sig, Structure(2, [2, 0]), mf)
-    assert sum("identify_core" in name for name in names) <= 1
-    with compiles() as names:  # bucket 2, the same feed-through input
-        mfmjax.identify(sig, Structure(1, [1, 0]), mf)
-    assert names == [], f"a new structure of the bucket compiled {names}"
-    monkeypatch.setattr(_identify, "order_bucket", lambda n: n)
-    for st, model in zip(same, padded):
-        own = mfmjax.identify(sig, st, mf)
-        tol = 1e-14 * float(own.cond)
-        for x, y in zip([model.a, *model.b], [own.a, *own.b]):
-            x, y = np.asarray(x), np.asarray(y)
-            assert x.shape == y.shape
-            assert np.max(np.abs(x - y)) <= tol * np.max(np.abs(y)), st
-        assert int(model.status) == int(own.status)
-
-
 def test_modulated_signals_and_gram_new_settings_compile_nothing(record):
     """The public `modulated_signals` and `gram` outside jit: one program per structure, record
     length and kernel bucket; a new (N, M, h), delay, t0 or name compiles nothing (eagerly, each
