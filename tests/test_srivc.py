@@ -205,6 +205,30 @@ def test_vmap_equals_loop_and_no_recompilation():
     assert bool(single.converged)
 
 
+def test_mfm_start_and_srivc_in_one_vmapped_call():
+    """A Monte Carlo study's pipeline at a known structure is one compiled call: the MFM
+    estimate (`identify`) as the start and SRIVC from it, vmapped over stacked records. Each
+    record's fit equals its own eager pipeline (separately compiled programs, the start
+    included: rounding, 1e-10 as `test_jit_equals_eager`); a new batch compiles nothing."""
+    st, mf = mfmjax.Structure(2, (1, 0)), mfmjax.ModulatingFunction(3, 4, 6.0)
+    recs = [_record(seed=s)[1] for s in range(6)]
+
+    def pipeline(sig):  # stacked delays are traced: their static bound
+        return mfmjax.srivc(sig, mfmjax.identify(sig, st, mf, delay_max=float(WHOLE.max())))
+
+    batched = jax.vmap(pipeline)
+    first = batched(_stack(recs[:3]))
+    for k in range(3):
+        own = mfmjax.srivc(recs[k], mfmjax.identify(recs[k], st, mf))
+        assert bool(own.converged) and bool(first.converged[k])
+        assert int(first.iterations[k]) == int(own.iterations)
+        assert np.allclose(np.asarray(first.theta[k]), np.asarray(own.theta), rtol=1e-10, atol=0)
+    with compiles() as names:
+        second = batched(_stack(recs[3:]))
+    assert names == [], f"recompiled: {names}"
+    assert bool(np.all(np.asarray(second.converged)))
+
+
 def test_list_of_records_equals_one_at_a_time():
     """`srivc(list, starts)`: chunks of records on threads; each fit equals the direct fit of
     its record (another batch program on the same padded shape: rounding level, 1e-10 as in
