@@ -161,7 +161,7 @@ def _observer_window(given, w, sig, option: str | None) -> float:
         return given
     if round(share * (w[1] - w[0]) / sig.dt) + 1 < MIN_WINDOW:
         what = (f"{option} {w[0]:g},{w[1]:g}" if option else
-                f"the record ({sig.n_samples} samples; no --window)")
+                f"the record ({sig.n_samples} samples)")
         raise _UserError(f"{what} is too short: its first {share:.0%} (the initial-state "
                          f"observer) needs at least {MIN_WINDOW} samples; widen it to at least "
                          f"{(MIN_WINDOW - 1) * sig.dt / share:g}, or give --observer-window"
@@ -704,6 +704,9 @@ def _cmd_search(args):
         kwargs["validate"] = _window(args.validate, "validate")
     if args.estimate and args.refine:
         raise _UserError("--estimate and --refine are two ways to improve the winner; give one")
+    if args.estimate and args.observer_window is not None:
+        raise _UserError("--observer-window sets the observer of the search's E; --estimate "
+                         "ranks on its hold-out blocks with their own (their first 20 %)")
     if args.holdout is not None and not args.estimate:
         raise _UserError("--holdout is the share held back by --estimate; add --estimate")
     report = None
@@ -712,6 +715,11 @@ def _cmd_search(args):
                  and not args.estimate and args.score != "J")
     if held_back:  # the ranking must not see the window the validation line calls held back
         kwargs["validate"] = ident
+    if not args.estimate:  # E and fit % as `validate` measures them: the state observed over
+        # the first 20 % of the window they are measured on (the whole record without one)
+        option = "--validate" if args.validate else "--identify-window" if held_back else None
+        kwargs["observer_window"] = _observer_window(
+            args.observer_window, kwargs.get("validate") or _whole(sig), sig, option)
     if args.estimate:  # mfmjax.estimate's path: its search table, ranked on held-back data
         kwargs.pop("score")
         kwargs.pop("validate", None)
@@ -754,6 +762,8 @@ def _cmd_search(args):
             out["validation"] = validation
         if args.estimate:
             out["score"] = "holdout E"  # the table of estimate: ranked on held-back data
+        else:
+            out["observer_window"] = kwargs["observer_window"]
         if report:
             key = "estimated" if "summary" in report else "refined"
             out[key] = {k: v for k, v in report.items() if k not in ("model", "summary")}
@@ -914,6 +924,9 @@ def main(argv=None) -> int:
     p.add_argument("--h", required=True, help="widths h, list a,b,c")
     p.add_argument("--score", default="E", choices=["E", "J", "fit", "aic", "bic"])
     p.add_argument("--validate", help="T0,T1 validation window (default: whole record)")
+    p.add_argument("--observer-window", type=_number("observer-window", lo=0, lo_open=True),
+                   help="length of the initial-state observer from the start of the window E "
+                   "is measured on (default: its first 20 %%)")
     p.add_argument("--top", type=_number("top", lo=1, integer=True), default=10,
                    help="rows to print")
     p.add_argument("--json", action="store_true", help="print one JSON object")

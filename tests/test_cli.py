@@ -292,10 +292,34 @@ def test_search_with_a_validation_window_ranks_on_the_identification_window(csv_
     sig = mfmjax.Signals.from_csv(csv_file, output="temp", inputs=["u1", "u2"], time="t",
                                   intersample=("foh", "zoh"))
     ref = mfmjax.search(sig, n=(2, 3), m=[(0, 1), (0,)], N=4, M=(4, 5), h=(1.5, 2.0),
-                        identify=(0.0, 12.0), validate=(0.0, 12.0))
+                        identify=(0.0, 12.0), validate=(0.0, 12.0), observer_window=0.2 * 12.0)
     assert [r["E"] for r in out["ranked"]] == pytest.approx(
         [ref.row(i)["E"] for i in range(len(out["ranked"]))], rel=1e-12)
     assert out["validation"]["window"] == [12.5, 19.99]
+    assert out["observer_window"] == pytest.approx(0.2 * 12.0, rel=1e-15)
+
+
+def test_search_measures_E_as_validate_does(csv_file, tmp_path, capsys):
+    """`search --validate A` scores E with the initial state observed over the first 20 % of A
+    (or `--observer-window`), as `validate --window A` measures a saved model: the two print
+    the same E for the search's winner (before, the search's observer ran over all of A, a
+    flattering fit that `validate` did not reproduce). Same program path on both sides
+    (observer, simulation, eq. 17), separately compiled: 1e-9 relative."""
+    best = tmp_path / "best.json"
+    common = [str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
+              "--intersample", "foh,zoh"]
+    for extra, ob in (([], 0.2 * 7.0), (["--observer-window", "3"], 3.0)):
+        assert main(["search", *common, "--n", "2:3", "--m", "0:1;0", "--N", "4", "--M", "5",
+                     "--h", "2", "--validate", "12,19", *extra, "--json", "--save",
+                     str(best)]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["observer_window"] == pytest.approx(ob, rel=1e-15)
+        assert main(["validate", *common, "--model", str(best), "--window", "12,19", *extra,
+                     "--json"]) == 0
+        val = json.loads(capsys.readouterr().out)
+        assert val["E"] == pytest.approx(out["ranked"][0]["E"], rel=1e-9)
+    assert main(["search", *common, "--h", "2", "--estimate", "--observer-window", "3"]) == 2
+    assert "--observer-window sets the observer" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
