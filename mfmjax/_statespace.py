@@ -32,14 +32,18 @@ def state_space(model: Model) -> StateSpace:
     host in NumPy, so an eager call compiles nothing; a traced one's in JAX)."""
     require_x64("state_space")
     traced = any(_b.is_traced(x) for x in jax.tree.leaves((model.a, model.b, model.offset)))
-    xp = jnp if traced else np
+    ss = _realised(model, jnp if traced else np)
+    return ss if traced else jax.device_put(ss)
+
+
+def _realised(model: Model, xp=np) -> StateSpace:
+    """Eq. (18) of `model` computed with `xp` (NumPy: a concrete model's, on the host)."""
     n = model.n
-    a, b, offset = (model.a, model.b, model.offset) if traced else \
+    a, b, offset = (model.a, model.b, model.offset) if xp is jnp else \
         jax.device_get((model.a, model.b, model.offset))
     bs = list(b) + ([xp.reshape(offset, (1,))] if model.has_offset else [])
     padded = [xp.concatenate([bk / a[n], xp.zeros(n + 1 - bk.shape[0])]) for bk in bs]
-    ss = realisation(a / a[n], padded, n, xp)[0]
-    return ss if traced else jax.device_put(ss)
+    return realisation(a / a[n], padded, n, xp)[0]
 
 
 def realisation(a, bs, n, xp=jnp):
@@ -92,7 +96,7 @@ def to_scipy(model: Model, *, ignore_delays: bool = False):
             "use to_control(model, pade_order=5) for a Pade approximation, or "
             "to_scipy(model, ignore_delays=True) for the delay-free part"
         )
-    ss = state_space(model)
+    ss = _realised(model)  # NumPy: also inside a user's jit, where a device_put would trace
     return signal.StateSpace(*(np.asarray(M) for M in (ss.A, ss.B, ss.C, ss.D)))
 
 
@@ -122,7 +126,7 @@ def to_control(model: Model, *, pade_order: int = 5):
 
     pade_order = integer("to_control", "pade_order", pade_order, lo=0, hi=20,
                          fix="use 3..10 (higher orders are ill-conditioned)")
-    ss = state_space(model)
+    ss = _realised(model)  # NumPy, as to_scipy
     names = list(model.input_names) + (["offset"] if model.has_offset else [])
     plant = control.ss(*(np.asarray(M) for M in (ss.A, ss.B, ss.C, ss.D)))
     tau = _delays(model)

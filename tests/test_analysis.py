@@ -8,6 +8,7 @@ import functools
 import math
 import types
 
+import jax
 import numpy as np
 import pytest
 from scipy import signal
@@ -273,6 +274,28 @@ def test_bands_from_a_fit_and_covariance_checks():
 
 
 # -- export -------------------------------------------------------------------------------------
+
+
+def test_to_scipy_and_to_control_of_a_concrete_model_inside_a_users_jit():
+    """A concrete model converted inside a traced function (a user's jit building a
+    controller from a fixed model): the realisation stays NumPy, equal to the eager one
+    exactly (the same NumPy operations). Before, `state_space` put its NumPy result on the
+    device, which inside a trace is a traced value, and `to_scipy` failed with JAX's
+    TracerArrayConversionError."""
+    control = pytest.importorskip("control")
+    model = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0, 0.5]], offset=0.3)
+    eager_sp, eager_ct = mfmjax.to_scipy(model), mfmjax.to_control(model)
+    seen = {}
+
+    def f(x):
+        seen["sp"], seen["ct"] = mfmjax.to_scipy(model), mfmjax.to_control(model)
+        return x * float(seen["sp"].A[1, 0])
+
+    assert float(jax.jit(f)(2.0)) == 2.0 * float(eager_sp.A[1, 0])
+    for name in ("A", "B", "C", "D"):
+        np.testing.assert_array_equal(getattr(seen["sp"], name), getattr(eager_sp, name))
+        np.testing.assert_array_equal(getattr(seen["ct"], name), getattr(eager_ct, name))
+    assert isinstance(seen["ct"], control.StateSpace)
 
 
 def test_to_control_keeps_delays_as_pade_and_to_scipy_refuses_them():
