@@ -435,11 +435,16 @@ class FrequencyResponse(eqx.Module):
     output_name: str = eqx.field(static=True)
     input_names: tuple = eqx.field(static=True)
 
-    def plot(self, path) -> None:
-        """Write the Bode diagram (with bands when available) as a PNG to `path`."""
+    def plot(self, path, *, nyquist: float | None = None) -> None:
+        """Write the Bode diagram (with bands when available) as a PNG to `path`. `nyquist`
+        (rad per time unit, e.g. pi / dt of the data the model came from): marked, and the
+        frequencies above it shaded, where the sampled data said nothing about the model."""
         from ._plotting import plot_bode
 
-        plot_bode(self, path)
+        if nyquist is not None:
+            nyquist = _b.number("FrequencyResponse.plot", "nyquist", nyquist, lo=0.0,
+                                lo_open=True)
+        plot_bode(self, path, nyquist)
 
 
 @jit

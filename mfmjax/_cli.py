@@ -870,13 +870,15 @@ def _cmd_report(args):
     bode = an.frequency_response(model, covariance=cov)
     os.makedirs(args.o, exist_ok=True)
     files = {}
+    nyquist = math.pi / float(sig.dt)  # the data's: a model says nothing reliable above it
     for name, obj in (("compare", cmp), ("residuals", res), ("step", step), ("bode", bode)):
         files[name] = os.path.join(args.o, f"{name}.png")
-        obj.plot(files[name])
+        obj.plot(files[name], **({"nyquist": nyquist} if name == "bode" else {}))
     rep = {"model": args.model, "data": args.file,
            "window": [float(cmp.t[0]), float(cmp.t[-1])],
            "fit": None if not math.isfinite(cmp.fit) else cmp.fit, "observer_window": ob,
            "residuals": res.to_dict(), "bands": cov is not None, "bands_note": note,
+           "nyquist": nyquist,
            "figures": files}
     from ._persist import atomic_write, json_safe
 

@@ -160,8 +160,9 @@ def plot_step(step, path) -> None:
     plt.close(fig)
 
 
-def plot_bode(fr, path) -> None:
-    """Bode magnitude (dB) and phase (deg) per input, with 99 % bands when available."""
+def plot_bode(fr, path, nyquist=None) -> None:
+    """Bode magnitude (dB) and phase (deg) per input, with 99 % bands when available; the
+    data's Nyquist frequency marked and the band above it shaded when given."""
     plt = _pyplot()
     fig, (am, ap) = plt.subplots(2, 1, figsize=(8, 5.5), dpi=100, sharex=True)
     for k, name in enumerate(fr.input_names):
@@ -175,6 +176,14 @@ def plot_bode(fr, path) -> None:
             ap.fill_between(fr.w, fr.phase_deg[k] - z * fr.phase_deg_std[k],
                             fr.phase_deg[k] + z * fr.phase_deg_std[k], color=line.get_color(),
                             alpha=0.25, lw=0)
+    if nyquist is not None:
+        for ax in (am, ap):
+            ax.axvline(nyquist, color="0.3", ls="--", lw=0.9,
+                       label="Nyquist of the data (pi/dt)" if ax is am else None)
+            if nyquist < fr.w[-1]:
+                ax.axvspan(nyquist, fr.w[-1], color="0.85", alpha=0.5, lw=0,
+                           label="above it: not in the data" if ax is am else None)
+        am.set_xlim(fr.w[0], fr.w[-1])
     am.set_ylabel("magnitude [dB]")
     ap.set_ylabel("phase [deg]")
     ap.set_xlabel("frequency [rad per time unit]")

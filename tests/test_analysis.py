@@ -247,6 +247,13 @@ def test_frequency_response_and_band_match_numpy(tmp_path):
     np.testing.assert_allclose(fr.phase_deg_std[0], np.degrees(sd[1]), rtol=1e-6, atol=1e-8)
     fr.plot(tmp_path / "bode.png")
     _is_png(tmp_path / "bode.png")
+    # the data's Nyquist frequency marked (inside the range: the band above it shaded; beyond
+    # it: the line alone); a non-positive one refused by name
+    for nyq in (float(np.median(w)), 10 * float(w[-1])):
+        fr.plot(tmp_path / "bode_nyquist.png", nyquist=nyq)
+        _is_png(tmp_path / "bode_nyquist.png")
+    with pytest.raises(ValueError, match="nyquist"):
+        fr.plot(tmp_path / "bad.png", nyquist=0.0)
     default = mfmjax.frequency_response(model)
     # |poles| = sqrt(a_0) = 1, |zero| = 1 / 0.3: from 0.01 x the smallest to 100 x the largest
     assert default.w[0] == pytest.approx(0.01, rel=1e-9)

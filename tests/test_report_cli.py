@@ -72,6 +72,7 @@ def test_report_writes_figures_and_json(files, capsys):
     assert rep["residuals"]["independence"]["valve"]["pass"] is True
     assert rep["residuals"]["whiteness"]["Q"] == pytest.approx(res.whiteness_stat, rel=1e-12)
     assert rep["bands"] is True and "99 %" in rep["bands_note"]
+    assert rep["nyquist"] == pytest.approx(np.pi / float(sig.dt), rel=1e-15)  # marked in bode.png
     assert "whiteness" in text and "fit" in text
 
 
