@@ -292,7 +292,9 @@ def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_wi
     eager_only(fn, signals, n, N, M, h, m, delays, validate, observer_window, eta)
     integers(fn, "n", n, lo=1, fix="orders are whole numbers, e.g. n=(1, 2, 3)")
     for name, val in (("N", N), ("M", M)):
-        integers(fn, name, val, lo=1, fix=f"give whole exponents, e.g. {name}=(3, 4, 5)")
+        integers(fn, name, val, lo=1, fix=f"give whole exponents, e.g. {name}=(3, 4, 5) (the "
+                 "search's moments need polynomial modulating functions; identify and refine "
+                 "take real exponents)")
     hs = _grid_numbers(fn, "h", h, fix="give modulating-function widths in the record's time "
                        "unit")  # the sign is checked by the grid builder
     if min(hs) > 0:
