@@ -135,9 +135,7 @@ class Trend(eqx.Module):
 def _check_concrete(fn: str, signals) -> None:
     if not isinstance(signals, Signals):
         raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}")
-    if any(_b.is_traced(x) for x in (signals.y, signals.u, signals.delays)):
-        raise TypeError(f"{fn}(): the record is traced (inside jit/vmap); detrend the data "
-                        "before the transformation, on concrete arrays")
+    _b.eager_only(fn, signals, fix="detrend the data before the transformation")
 
 
 def _offset(fn: str, offset) -> bool:
