@@ -157,7 +157,13 @@ def _observer_window(given, w, sig, option: str | None) -> float:
     from ._observers import MIN_WINDOW
     from ._selection import OBSERVER_FRACTION as share
 
-    if given is not None:
+    if given is not None:  # checked here, in the CLI's terms (the library names its argument)
+        samples = round(given / sig.dt) + 1
+        if samples < MIN_WINDOW or given > (w[1] - w[0]) * (1 + 1e-12):
+            where = f"{option} {w[0]:g},{w[1]:g}" if option else "the record"
+            raise _UserError(f"--observer-window {given:g} must hold at least {MIN_WINDOW} "
+                             f"samples (>= {(MIN_WINDOW - 1) * sig.dt:g} at dt = {sig.dt:g}) "
+                             f"and fit inside {where} ({w[1] - w[0]:g} long)")
         return given
     if round(share * (w[1] - w[0]) / sig.dt) + 1 < MIN_WINDOW:
         what = (f"{option} {w[0]:g},{w[1]:g}" if option else
@@ -285,6 +291,22 @@ def _offset_note(sig) -> None:
         print(f"note: {sig.offset_note}", file=sys.stderr)
 
 
+def _no_inputs_note(args) -> None:
+    """On stderr: without --inputs the model is the output's alone (its free response), while
+    the file may hold the inputs the user meant (a forgotten --inputs gave an autonomous model
+    of the DaISy dryer's y1 with nothing said)."""
+    if _columns(args):
+        return
+    from ._signals import read_csv
+
+    names = [c.strip() for c in args.names.split(",")] if args.names else None
+    unused = [c for c in read_csv(args.file, names) if c not in (args.output, args.time)]
+    if unused:
+        print(f"note: no --inputs: a model of {args.output} alone (its free response from the "
+              f"observed initial state); the file's columns {', '.join(unused)} are not used "
+              "(give --inputs to model their effect)", file=sys.stderr)
+
+
 def _names_note(model, sig) -> None:
     """On stderr after the results: the saved model's column names differ from the data's (a
     heating system's model validated on a heat exchanger's columns gave fit -4857 % with
@@ -335,6 +357,7 @@ def _cmd_identify(args):
         saved = report["model"] if report else model
         save_model(saved, args.save, covariance=usable_covariance(saved, cov))
     _offset_note(full)  # after the work: a user error stays one line
+    _no_inputs_note(args)
     if args.json:
         out = model.to_dict()
         if report:
@@ -700,8 +723,8 @@ def _cmd_search(args):
         kwargs["m"] = _per_input_grid(args.m, "m", K, True)
     if grid_delays:
         kwargs["delays"] = _per_input_grid(grid_delays, "delays", K, False)
-    if args.validate:
-        kwargs["validate"] = _window(args.validate, "validate")
+    if args.validate:  # inside the record: checked before the observer that depends on it
+        kwargs["validate"] = _record_window(args.validate, "validate", sig)
     if args.estimate and args.refine:
         raise _UserError("--estimate and --refine are two ways to improve the winner; give one")
     if args.estimate and args.observer_window is not None:
@@ -717,9 +740,20 @@ def _cmd_search(args):
         kwargs["validate"] = ident
     if not args.estimate:  # E and fit % as `validate` measures them: the state observed over
         # the first 20 % of the window they are measured on (the whole record without one)
-        option = "--validate" if args.validate else "--identify-window" if held_back else None
-        kwargs["observer_window"] = _observer_window(
-            args.observer_window, kwargs.get("validate") or _whole(sig), sig, option)
+        option = ("--validate" if args.validate else
+                  "--identify-window (where the search ranks by E)" if held_back else None)
+        w = kwargs.get("validate") or _whole(sig)
+        try:
+            kwargs["observer_window"] = _observer_window(args.observer_window, w, sig, option)
+        except _UserError:
+            if option or args.observer_window is not None:
+                raise
+            # a whole record too short for a 20 % observer: the observer over all of it (the
+            # search's own default), as before 2026-11-27, said on stderr
+            kwargs["observer_window"] = w[1] - w[0]
+            print(f"note: the record is too short for an initial-state observer over its first "
+                  f"20 %; E is measured with the state observed over all of it "
+                  f"({sig.n_samples} samples)", file=sys.stderr)
     if args.estimate:  # mfmjax.estimate's path: its search table, ranked on held-back data
         kwargs.pop("score")
         kwargs.pop("validate", None)
@@ -752,6 +786,7 @@ def _cmd_search(args):
     validation = _validation_report(args, sig, report["model"] if report else result.best())
     if not args.estimate:  # estimate's notes say it, with its own decision
         _offset_note(sig)  # after the work: a user error stays one line
+    _no_inputs_note(args)
     if held_back:
         print(f"note: candidates ranked by {args.score} on --identify-window {ident[0]:g},"
               f"{ident[1]:g}, not on the --validate-window data (give --validate to rank on "
@@ -775,6 +810,10 @@ def _cmd_search(args):
                   f"(estimate {estimate_s:.1f} s: search, SRIVC and output error)"
                   if args.estimate else
                   f"(compile {result.compile_s:.1f} s, run {result.run_s:.1f} s)"))
+        if not args.estimate:
+            w = kwargs.get("validate") or _whole(sig)
+            print(f"E and fit % on [{w[0]:g}, {w[1]:g}], the state from the observer over the "
+                  f"first {kwargs['observer_window']:g}")
         print(result.table(args.top))
         if report and "summary" in report:
             print("\n" + report["summary"])
@@ -928,7 +967,8 @@ def main(argv=None) -> int:
     p.add_argument("--validate", help="T0,T1 validation window (default: whole record)")
     p.add_argument("--observer-window", type=_number("observer-window", lo=0, lo_open=True),
                    help="length of the initial-state observer from the start of the window E "
-                   "is measured on (default: its first 20 %%)")
+                   "is measured on (default: its first 20 %%; the --validate-window line keeps "
+                   "its own first 20 %%)")
     p.add_argument("--top", type=_number("top", lo=1, integer=True), default=10,
                    help="rows to print")
     p.add_argument("--json", action="store_true", help="print one JSON object")

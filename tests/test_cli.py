@@ -299,14 +299,24 @@ def test_search_with_a_validation_window_ranks_on_the_identification_window(csv_
     assert out["observer_window"] == pytest.approx(0.2 * 12.0, rel=1e-15)
 
 
-def test_search_measures_E_as_validate_does(csv_file, tmp_path, capsys):
+def test_search_measures_E_as_validate_does(tmp_path, capsys):
     """`search --validate A` scores E with the initial state observed over the first 20 % of A
     (or `--observer-window`), as `validate --window A` measures a saved model: the two print
     the same E for the search's winner (before, the search's observer ran over all of A, a
-    flattering fit that `validate` did not reproduce). Same program path on both sides
-    (observer, simulation, eq. 17), separately compiled: 1e-9 relative."""
+    flattering fit that `validate` did not reproduce). A noisy record, so that E is well above
+    rounding; the same observer and simulation (eq. 14-17) in two programs: 1e-9 relative. The
+    whole-window observer's E differs from it by far more (checked: the test tells them
+    apart)."""
+    import mfmjax
+
+    sig = simulated_experiment(third_order_two_input(), dt=0.01, n_samples=2000, noise_std=0.05,
+                               seed=7)
+    path = tmp_path / "noisy.csv"
+    t = 0.01 * np.arange(2000)
+    np.savetxt(path, np.column_stack([t, np.asarray(sig.y), np.asarray(sig.u)]), delimiter=",",
+               header="t,temp,u1,u2", comments="", fmt="%.17g")
     best = tmp_path / "best.json"
-    common = [str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
+    common = [str(path), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
               "--intersample", "foh,zoh"]
     for extra, ob in (([], 0.2 * 7.0), (["--observer-window", "3"], 3.0)):
         assert main(["search", *common, "--n", "2:3", "--m", "0:1;0", "--N", "4", "--M", "5",
@@ -317,9 +327,42 @@ def test_search_measures_E_as_validate_does(csv_file, tmp_path, capsys):
         assert main(["validate", *common, "--model", str(best), "--window", "12,19", *extra,
                      "--json"]) == 0
         val = json.loads(capsys.readouterr().out)
-        assert val["E"] == pytest.approx(out["ranked"][0]["E"], rel=1e-9)
+        E = out["ranked"][0]["E"]
+        assert E > 1e-3 and val["E"] == pytest.approx(E, rel=1e-9, abs=0)
+        whole = float(mfmjax.observe(mfmjax.load_model(best), mfmjax.Signals.from_csv(
+            path, output="temp", inputs=["u1", "u2"], time="t", intersample=("foh", "zoh")),
+            (12.0, 19.0)).E)
+        assert abs(whole - E) > 1e-6 * E
+    # a given observer is checked in the CLI's terms
+    assert main(["search", *common, "--h", "2", "--validate", "12,19",
+                 "--observer-window", "0.05"]) == 2
+    assert "--observer-window 0.05 must hold at least 8 samples (>= 0.07 at dt = 0.01)" in \
+        capsys.readouterr().err
     assert main(["search", *common, "--h", "2", "--estimate", "--observer-window", "3"]) == 2
     assert "--observer-window sets the observer" in capsys.readouterr().err
+
+
+def test_search_short_record_and_no_inputs_notes(csv_file, tmp_path, capsys):
+    """A whole record too short for a 20 % observer (30 samples: 7 in its first 20 %, the
+    observer needs 8) is still searched, E with the state observed over all of it (the search's
+    own default), and a note says so (the 20 % rule refused it first). Without --inputs the
+    model is the output's alone, the file's other columns unused: a note names them. And a
+    record without input is searched (K = 0: the search's reshapes could not infer an empty
+    axis and raised ZeroDivisionError inside JAX)."""
+    rows = csv_file.read_text().splitlines()
+    short = tmp_path / "short.csv"
+    short.write_text("\n".join(rows[:31]) + "\n")
+    assert main(["search", str(short), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
+                 "--n", "1", "--N", "3", "--M", "3", "--h", "0.1", "--json"]) == 0
+    cap = capsys.readouterr()
+    assert "too short for an initial-state observer over its first 20 %" in cap.err
+    assert json.loads(cap.out)["observer_window"] == pytest.approx(0.29, rel=1e-12)
+    assert main(["search", str(csv_file), "--output", "temp", "--time", "t", "--n", "1:2",
+                 "--N", "3", "--M", "3", "--h", "2", "--json"]) == 0
+    cap = capsys.readouterr()
+    assert "note: no --inputs: a model of temp alone" in cap.err
+    assert "the file's columns u1, u2 are not used" in cap.err
+    assert json.loads(cap.out)["candidates"] == 2
 
 
 @pytest.mark.parametrize(

@@ -70,6 +70,24 @@ def test_every_candidate_equals_identify(noisy):
             assert abs(r["E"] - E) <= 1e-6 * E + 1e-12
 
 
+def test_search_without_input():
+    """An autonomous record (K = 0, a free response from x0): the search runs (its reshapes
+    could not infer the empty inputs' axis: ZeroDivisionError inside JAX) and every candidate
+    equals `identify` of its structure (the same maths, kernels padded and summed in another
+    order: 1e-8 where well conditioned, as `test_every_candidate_equals_identify`)."""
+    true = mfmjax.Model.from_coefficients([2.0, 0.6, 1.0], [])
+    y = np.asarray(mfmjax.simulate(true, np.zeros((2000, 0)), [1.0, 0.5], dt=0.01))
+    sig = Signals(y + 1e-3 * np.random.default_rng(2).standard_normal(2000), dt=0.01)
+    res = mfmjax.search(sig, n=(1, 2), N=(3,), M=(3, 4), h=(2.0, 3.0))
+    assert len(res) == 2 * 2 * 2 and res.row(0)["n"] == 2
+    for i in range(len(res)):
+        r = res.row(i)
+        mod = mfmjax.identify(sig, Structure(r["n"]), ModulatingFunction(r["N"], r["M"], r["h"]))
+        assert float(mod.cond) < 1e12
+        ref = np.asarray(mod.a)
+        assert np.max(np.abs(np.asarray(r["a"]) - ref)) <= 1e-8 * np.max(np.abs(ref)), r
+
+
 def test_best_by_E_has_true_orders(clean):
     res = mfmjax.search(clean, n=(1, 2, 3, 4), N=(4, 5), M=(4, 5), h=(1.5, 2.0),
                         m=[(0, 1, 2), (0, 1, 2)])

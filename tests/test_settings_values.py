@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference as R
 from jaxlog import compiles
 
 import mfmjax
@@ -264,9 +265,10 @@ def test_observe_new_record_and_window_lengths_inside_a_bucket_compile_nothing(r
     1200 and 1100 samples, and windows of 901 and 921 samples (bucket 1024) with or without an
     observer window, share one program; so do `moving_final_states`' windows (eq. 16) of 901
     and 921 samples on them (before, each record length and T_ob compiled its program). Only
-    the window's samples count: x0, the final state, E and y_sim equal the unpadded program's
+    the window's samples count: x0, the final state and y_sim equal the unpadded program's
     (`observe_window` at the window's own length) to the rounding of the Gramian's sums (equal
-    shapes up to the padding: 1e-10 relative)."""
+    shapes up to the padding: 1e-10 relative), and E is the Gregory sum over the window's own
+    samples."""
     from mfmjax._observers import observe_window
 
     model = mfmjax.identify(record, ST, ModulatingFunction(4, 5, 2.6))
@@ -293,13 +295,18 @@ def test_observe_new_record_and_window_lengths_inside_a_bucket_compile_nothing(r
                           (obs.y_sim, ref.y_sim)):
             np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-10,
                                        atol=1e-10 * np.max(np.abs(np.asarray(want))))
-        # E = sum q_i r_i^2 (eq. 17) of residuals r at rounding level here (noise-free data:
-        # E ~ 1e-11), so its relative error is not small. With y_sim within d = 2e-10
-        # max|y_sim| per sample (above) and sum q_i = the window's duration D (Cauchy-Schwarz):
-        # |dE| <= 2 sqrt(E D) d + D d^2
-        d = 2e-10 * float(np.max(np.abs(np.asarray(ref.y_sim))))
-        D = (length - 1) * DT
-        assert abs(float(obs.E) - float(ref.E)) <= 2 * np.sqrt(float(ref.E) * D) * d + D * d**2
+        # E (eq. 17) is the Gregory sum of the window's own squared residuals, the padding
+        # left out: recomputed from each y_sim (compared above) with the NumPy twin's weights
+        # on the window's own length. Same terms, another summation order: L eps relative
+        # (2.4e-13 for L = 1100). (E itself is small here, about 1e-11: the identification
+        # error of a noise-free record, RMS residual about 5e-7, so E's of two programs
+        # differ relatively more than their y_sim.) An extra or a missing sample, or other
+        # end weights, move E by 1e-4 to 1e-6 of itself.
+        y_w = np.asarray(short.y)[start:start + length]
+        q = R.gregory(length, 0, DT)
+        for o in (obs, ref):
+            E_twin = float(np.sum(q * (y_w - np.asarray(o.y_sim)) ** 2))
+            assert abs(float(o.E) - E_twin) <= 1e-12 * E_twin
 
 
 def test_window_at_the_record_end_on_a_new_record_length_compiles_nothing(monkeypatch):

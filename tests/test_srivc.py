@@ -216,15 +216,18 @@ def test_mfm_start_and_srivc_in_one_vmapped_call():
     def pipeline(sig):  # stacked delays are traced: their static bound
         return mfmjax.srivc(sig, mfmjax.identify(sig, st, mf, delay_max=float(WHOLE.max())))
 
-    batched = jax.vmap(pipeline)
-    first = batched(_stack(recs[:3]))
+    batched = jax.jit(jax.vmap(pipeline))
+    stacks = _stack(recs[:3]), _stack(recs[3:])  # (stacking runs eager operations)
+    with compiles() as names:
+        first = batched(stacks[0])
+    assert names == ["jit(pipeline)"], names  # one program, the MFM start included
     for k in range(3):
         own = mfmjax.srivc(recs[k], mfmjax.identify(recs[k], st, mf))
         assert bool(own.converged) and bool(first.converged[k])
         assert int(first.iterations[k]) == int(own.iterations)
         assert np.allclose(np.asarray(first.theta[k]), np.asarray(own.theta), rtol=1e-10, atol=0)
     with compiles() as names:
-        second = batched(_stack(recs[3:]))
+        second = batched(stacks[1])
     assert names == [], f"recompiled: {names}"
     assert bool(np.all(np.asarray(second.converged)))
 

@@ -39,8 +39,24 @@ def in_blocks(fn, xs, block: int):
     block = min(block, total)
     padded = -(-total // block) * block
     xs = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], padded - total, 0)]), xs)
-    out = jax.lax.map(fn, xs, batch_size=block)
-    return jax.tree.map(lambda v: v[:total], out)
+    # leaves with no elements (the inputs' axis of a record without input, K = 0) stay out of
+    # `lax.map`, whose batching reshape cannot infer their sizes; empty outputs likewise
+    leaves, tree = jax.tree.flatten(xs)
+    full = [x.size > 0 for x in leaves]
+
+    def body(kept):
+        it = iter(kept)
+        return fn(jax.tree.unflatten(tree, [next(it) if f else jnp.zeros(x.shape[1:], x.dtype)
+                                            for x, f in zip(leaves, full)]))
+
+    shapes = jax.eval_shape(body, [x[0] for x, f in zip(leaves, full) if f])
+    outs, out_tree = jax.tree.flatten(shapes)
+    mapped = jax.lax.map(lambda kept: [o for o, s in zip(jax.tree.leaves(body(kept)), outs)
+                                       if s.size > 0],
+                         [x for x, f in zip(leaves, full) if f], batch_size=block)
+    it = iter(mapped)
+    return jax.tree.unflatten(out_tree, [next(it)[:total] if s.size > 0 else
+                                         jnp.zeros((total,) + s.shape, s.dtype) for s in outs])
 
 
 def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm, where):
@@ -117,13 +133,18 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
 
     # the signal-sized work one setting at a time (cache-sized; vmapped over the devices'
     # blocks of the sharded axis), the small solves batched over all of them
-    per_dev = (static.devices, -1)
+    # (explicit sizes in every reshape: with no input, K = 0, the arrays of the inputs' axis
+    # are empty and a -1 could not be inferred)
+    G, C = groups["h"].shape[0], cand["n"].shape[0]
+
+    def per_dev(x):  # the leading axis split into the devices' blocks
+        return x.reshape((static.devices, x.shape[0] // static.devices) + x.shape[1:])
+
     Gx, alive = jax.vmap(lambda hd: jax.lax.map(grams, hd))(
-        (groups["h"].reshape(per_dev), groups["delays"].reshape(per_dev + (K,))))
-    Gx, alive = Gx.reshape((-1,) + Gx.shape[2:]), alive.reshape((-1,) + alive.shape[2:])
+        (per_dev(groups["h"]), per_dev(groups["delays"])))
+    Gx, alive = Gx.reshape((G,) + Gx.shape[2:]), alive.reshape((G,) + alive.shape[2:])
     # every (setting, candidate) pair in one flat axis (a smaller program than two nested
     # vmaps), solved in cache-sized blocks on each device's share of the settings
-    G, C = groups["h"].shape[0], cand["n"].shape[0]
     pairs = (jnp.repeat(jnp.arange(G), C),
              jax.tree.map(lambda x: jnp.tile(x, (G,) + (1,) * (x.ndim - 1)), cand))
 
@@ -133,7 +154,7 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
     lead = 1
     if static.devices > 1:  # a vmap over the devices' shares keeps the axis sharded (with
         # one device it cost 0.1-0.2 s more compile time, so not there)
-        pairs = jax.tree.map(lambda x: x.reshape(per_dev + x.shape[1:]), pairs)
+        pairs = jax.tree.map(per_dev, pairs)
         solve_all, lead = jax.vmap(solve_all), 2
     out = jax.tree.map(lambda x: x.reshape((G, C) + x.shape[lead:]), solve_all(pairs))
     shape = out["status"].shape
@@ -141,12 +162,12 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
         nan = jnp.full(shape, jnp.nan)
         return dict(out, E=nan, fit=nan, aic=nan, bic=nan, status=out["status"].astype(jnp.int32))
     flat = {  # the padded models of the (G, C) solves as one axis (`validate_candidate`'s c)
-        "a": out["a"].reshape(-1, n_max + 1),
-        "b": out["b"].reshape(-1, K, n_max + 1),
-        "offset": out["offset"].reshape(-1),
-        "n": jnp.broadcast_to(cand["n"], shape).reshape(-1),
-        "k": jnp.broadcast_to(cand["k"], shape).reshape(-1),
-        "delays": jnp.broadcast_to(groups["delays"][:, None, :], shape + (K,)).reshape(-1, K),
+        "a": out["a"].reshape(G * C, n_max + 1),
+        "b": out["b"].reshape(G * C, K, n_max + 1),
+        "offset": out["offset"].reshape(G * C),
+        "n": jnp.broadcast_to(cand["n"], shape).reshape(G * C),
+        "k": jnp.broadcast_to(cand["k"], shape).reshape(G * C),
+        "delays": jnp.broadcast_to(groups["delays"][:, None, :], shape + (K,)).reshape(G * C, K),
     }
     if validated_apart(static):  # the validation simulations: `validate_blocks`, after it,
         # on the candidates padded to whole slabs (the last repeated)
@@ -186,7 +207,7 @@ def validate_blocks(sig: Signals, c, count, where, v_length: int):
     ceil(count / B) trips; the blocks beyond return zeros. (A `lax.map` with the unused blocks
     skipped by `lax.cond` ran 2-4 % slower.)"""
     B = VALIDATION_BATCH
-    blocks = jax.tree.map(lambda x: x.reshape((-1, B) + x.shape[1:]), c)
+    blocks = jax.tree.map(lambda x: x.reshape((x.shape[0] // B, B) + x.shape[1:]), c)
 
     def block(cb):
         return jax.vmap(lambda ci: validate_candidate(sig, v_length, ci, where))(cb)
@@ -202,7 +223,7 @@ def validate_blocks(sig: Signals, c, count, where, v_length: int):
                             res)
 
     out = jax.lax.fori_loop(0, (count + B - 1) // B, one, init)
-    return jax.tree.map(lambda v: v.reshape((-1,) + v.shape[2:]), out)
+    return jax.tree.map(lambda v: v.reshape((v.shape[0] * v.shape[1],) + v.shape[2:]), out)
 
 
 def _compile_validation(sig, plan: Plan, where) -> None:
@@ -314,7 +335,7 @@ def run_plan(plan: Plan, signals: Signals, progress=None, records=None, once=Fal
                 val = np.asarray(val)[:real]
                 if key not in col:
                     col[key] = np.empty((len(hd) * Cg,) + val.shape[2:], val.dtype)
-                col[key][c0 * Cg : (c0 + real) * Cg] = val.reshape((-1,) + val.shape[2:])
+                col[key][c0 * Cg : (c0 + real) * Cg] = val.reshape((real * Cg,) + val.shape[2:])
         del res
         times[c0] = time.perf_counter() - t0
         if progress is not None:
