@@ -287,7 +287,9 @@ def _offset_note(sig) -> None:
     """The default offset rule's decision and why (`Signals.offset_note`), on stderr as the
     detrend note: the model it shapes is printed without it (a heater record whose rule could
     not decide the term came back 35-43 % off with status ok and nothing said)."""
-    if sig.offset_note and "(detrended:" not in sig.offset_note:  # --detrend said it
+    from ._signals import DETRENDED
+
+    if sig.offset_note and DETRENDED not in sig.offset_note:  # --detrend said it
         print(f"note: {sig.offset_note}", file=sys.stderr)
 
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from . import _boundary as _b
 from ._pytree import replace_fields
-from ._signals import INTERSAMPLE, Signals
+from ._signals import DETRENDED, INTERSAMPLE, Signals
 
 DETREND_KINDS = ("linear", "constant")
 OUTPUT_RULES = ("linear", "cubic")
@@ -186,8 +186,8 @@ def detrend(signals: Signals, kind: str = "linear", *, offset: bool = False
     u_level = np.array([c for c, _ in lines], dtype=np.float64)
     u_slope = np.array([s for _, s in lines], dtype=np.float64)
     what = "least-squares line" if kind == "linear" else "mean"
-    note = (f"no offset term (detrended: the {what} of the output and of each input was removed, "
-            "and the operating point with it)")
+    note = (f"no offset term {DETRENDED} the {what} of the output and of each input was "
+            "removed, and the operating point with it)")
     levels = jax.device_put(tuple(np.asarray(v, dtype=np.float64)  # no eager programs
                                   for v in (y_level, y_slope, u_level, u_slope)))
     trend = Trend(

@@ -229,12 +229,16 @@ def _undecided(y, cols) -> bool:
                 for col in cols)
 
 
+DETRENDED = "(detrended:"  # in the offset note of a record `detrend` returned: a decision
+
+
 def offset_undecided(signals) -> bool:
     """The default rule (`offset_needed`) left `signals`' offset term off where the data cannot
     tell whether it is needed (`_undecided`): `estimate` then fits both and keeps the term
-    only where it predicts the held-back data better. False when the user chose the term."""
-    if signals.offset or not signals.offset_note or not _concrete(signals.y) or \
-            not _concrete(signals.u):
+    only where it predicts the held-back data better. False when the user chose the term, or
+    `detrend` did (its record describes deviations from the removed lines)."""
+    if signals.offset or not signals.offset_note or DETRENDED in signals.offset_note or \
+            not _concrete(signals.y) or not _concrete(signals.u):
         return False
     cols = np.asarray(signals.u).reshape(signals.n_samples, -1).T
     return _undecided(np.asarray(signals.y), cols)

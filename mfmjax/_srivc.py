@@ -412,10 +412,17 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
     c = padded.padded_model(model, model.n, w - 1)
     fit = _fit(signals, model, padded_fit(signals, c, max_iter=max_iter, tol=tol), (model.n, w))
     if not traced and int(fit.status) != 0:
+        y = np.asarray(signals.y)
+        y0, span = float(np.mean(y[:10])), float(np.ptp(y))
+        at_rest = abs(y0) <= 0.1 * span  # else the filters' start from rest leaves a transient
         warnings.warn(f"srivc(): stopped without converging ({describe_srivc(int(fit.status))})"
                       f" after {int(fit.iterations)} iterations; returned the best iterate by "
-                      "simulation error. Check the start model and the data, or raise max_iter",
-                      stacklevel=2)
+                      "simulation error. Check the start model and the data, or raise max_iter"
+                      + ("" if at_rest else
+                         f"; the filters start from rest at the first sample, and the output "
+                         f"starts at {y0:.4g} (its range: {span:.3g}): shift the record by its "
+                         "first samples (y - y[0], u - u[0], as estimate does; see srivc's "
+                         "docstring)"), stacklevel=2)
     return fit
 
 

@@ -344,3 +344,27 @@ def test_cli_resample_needs_time(irregular_csv, capsys):
     assert main([*argv, "--resample", "0.05"]) == 2
     err = capsys.readouterr().err.strip()
     assert "--resample 0.05: needs --time COLUMN" in err, err
+
+
+def test_a_detrended_record_keeps_detrends_offset_decision():
+    """`detrend` returns its record with `offset=False` (deviations from the removed lines need
+    no offset term): `estimate` must not re-decide the term on held-back data, as it does for a
+    record whose default rule could not decide (`offset_undecided`). Before, any automatic note
+    counted as undecided, so the DaISy dryer, detrended, came back with an offset term 'decided
+    on held-back data'."""
+    import os
+
+    from conftest import SHARED
+
+    from mfmjax._signals import offset_undecided
+
+    path = os.path.join(SHARED, "daisy-industrial-dryer", "dryer2.dat")
+    if not os.path.exists(path):
+        pytest.skip("shared DaISy data not present")
+    d = np.loadtxt(path)
+    raw = Signals(d[:, 4], d[:, 1:4], dt=10.0, intersample=("zoh",) * 3)
+    assert not raw.offset and offset_undecided(raw)  # the rule cannot decide on the raw record
+    for kind in ("constant", "linear"):
+        detrended, _ = mfmjax.detrend(raw, kind)
+        assert not detrended.offset and not offset_undecided(detrended)
+        assert mfmjax.detrend(raw, kind, offset=True)[0].offset  # the user's choice stays

@@ -353,3 +353,19 @@ def test_srivc_refuses_signals_without_inputs():
     start = mfmjax.Model.from_coefficients([2.5, 0.3, 1.0])
     with pytest.raises(ValueError, match=r"srivc\(\): the signals have no input.*output_error"):
         mfmjax.srivc(sig, start)
+
+
+def test_warning_says_to_shift_a_record_that_starts_away_from_rest():
+    """A fit that did not converge on a record whose output starts far from zero (an operating
+    point: the filters start from rest, so the record opens with a start-up transient) names
+    the shift `estimate` applies; on a record that starts at rest the warning does not."""
+    _, sig, start = _record()
+    level = Signals(np.asarray(sig.y) + 50.0, sig.u, dt=DT, intersample=MODES,
+                    delays=WHOLE, offset=True)
+    with pytest.warns(UserWarning, match=r"output starts at 5\d\.\d+ .*shift the record by its "
+                      r"first samples"):
+        mfmjax.srivc(level, start, max_iter=1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mfmjax.srivc(sig, start, max_iter=1)
+    assert len(caught) == 1 and "shift the record" not in str(caught[0].message)
