@@ -28,6 +28,7 @@ their Jacobians in jitted programs, one per structure and grid length).
 from __future__ import annotations
 
 import math
+import warnings
 
 import equinox as eqx
 import jax
@@ -311,6 +312,19 @@ def _poles(model):
     return np.roots(np.asarray(model.a, dtype=np.float64)[::-1])
 
 
+def _growing(fn: str, poles, what: str):
+    """Warn that the model has poles with Re > 0 (`what`: what that means for `fn`'s result);
+    returns the largest growth rate (0 when there is none)."""
+    # Re p above rounding of the roots (np.roots puts an integrator's 0 at +-1e-17 |p|)
+    growing = poles[poles.real > 1e-9 * np.max(np.abs(poles), initial=0.0)]
+    if growing.size == 0:
+        return 0.0
+    rate = float(np.max(growing.real))
+    warnings.warn(f"{fn}(): the model is unstable (poles with Re > 0: "
+                  f"{', '.join(f'{p:.3g}' for p in growing)}): {what}", stacklevel=3)
+    return rate
+
+
 def _placed(cov, live, size: int):
     """`cov` (of the free parameters) at the positions `live` of `order_parameters`' vector,
     zero elsewhere (the extra coefficients are known zeros); None stays None."""
@@ -390,12 +404,18 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
     _b.eager_only("step_response", model, t_final, covariance)
     model, cov = model_and_covariance(model, covariance, "step_response")
     n_points = _b.integer("step_response", "n_points", n_points, lo=2, hi=100_000)
-    if t_final is None:
-        p = _poles(model)
+    p = _poles(model)
+    rate = _growing("step_response", p, "its step response grows without bound" + (
+        "; the default horizon shows 3 e-folding times of the fastest growing mode"
+        if t_final is None else ""))
+    if t_final is None:  # 7 time constants of the slowest stable pole, or 3 e-folding times
+        # of the fastest unstable one (the slowest stable pole hid a slow divergence: the
+        # DaISy dryer's +0.00055 looked settled at 988 s)
         stable = p[p.real < 0]
         scale = (1.0 / np.min(-stable.real)) if stable.size else (
             1.0 / max(np.min(np.abs(p)), 1e-300) if np.any(p != 0) else 1.0)
-        t_final = 7.0 * scale + float(np.max(np.asarray(model.delays), initial=0.0))
+        t_final = (3.0 / rate if rate > 0 else 7.0 * scale) + float(
+            np.max(np.asarray(model.delays), initial=0.0))
     t_final = _b.number("step_response", "t_final", t_final, lo=0, lo_open=True,
                         fix="give the duration in the model's time unit")
     dt = np.float64(t_final / (n_points - 1))  # a value: no program per t_final
@@ -472,6 +492,8 @@ def frequency_response(model, w=None, *, covariance=None, n_points: int = 400):
     """
     _b.eager_only("frequency_response", model, w, covariance)
     model, cov = model_and_covariance(model, covariance, "frequency_response")
+    _growing("frequency_response", _poles(model), "B_k(jw)/A(jw) is defined, but it is no "
+             "steady-state response (the model has none)")
     if w is None:
         n_points = _b.integer("frequency_response", "n_points", n_points, lo=2, hi=100_000)
         roots = [_poles(model)] + [np.roots(np.asarray(bk)[::-1]) for bk in model.b]

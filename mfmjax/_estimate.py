@@ -194,6 +194,12 @@ def estimate(
             estimation=identify, holdout=holdout, folds=folds, **grid))
     outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes
                            + unstable_note(o.model)) for o, r in zip(outs, records)]
+    unstable = [r for r, o in enumerate(outs) if unstable_note(o.model)]
+    if unstable:  # in the notes and the summary, and said where the user looks first
+        which = "" if single else (f" ({len(unstable)} of {len(outs)} records: "
+                                   f"{unstable[:10]}{'...' if len(unstable) > 10 else ''})")
+        warnings.warn(f"estimate(){which}: {unstable_note(outs[unstable[0]].model)[0]}",
+                      stacklevel=2)
     for r, (o, rec) in enumerate(zip(outs, records)):
         dependent = dependent_inputs(rec, o.model.delays)  # under the model's own delays
         if dependent:  # the gains and their standard errors are meaningless

@@ -7,6 +7,7 @@ from __future__ import annotations
 import functools
 import math
 import types
+import warnings
 
 import jax
 import numpy as np
@@ -351,3 +352,24 @@ def test_save_model_keeps_an_optional_covariance(tmp_path):
 def _is_png(path):
     data = open(path, "rb").read()
     assert data[:8] == PNG and len(data) > 10_000, (path, len(data))
+
+
+def test_unstable_model_step_and_frequency_responses_warn_and_show_the_growth():
+    """A model with a slow unstable pole (the DaISy dryer's estimate: -0.0147, -0.0071,
+    +0.00055): the default step horizon was 7 time constants of the slowest stable pole (988
+    s), where the response looked settled. Now both responses warn, and the horizon is 3
+    e-folding times of the growing mode (3 / 0.00055 s), over which the response grows:
+    its growing mode's share e^(0.00055 t) rises from e^0.6 at a fifth of the horizon to e^3."""
+    poles = [-0.0147, -0.0071, 0.00055]
+    model = Model.from_coefficients(np.poly(poles)[::-1], [[1e-4]])
+    with pytest.warns(UserWarning, match=r"step_response\(\): the model is unstable \(poles "
+                      r"with Re > 0: 0\.00055\)"):
+        st = mfmjax.step_response(model)
+    assert st.t[-1] == pytest.approx(3 / 0.00055, rel=1e-9)
+    assert st.y[0, -1] > 10 * st.y[0, len(st.t) // 5] > 0
+    with pytest.warns(UserWarning, match=r"frequency_response\(\): the model is unstable"):
+        mfmjax.frequency_response(model)
+    with warnings.catch_warnings():  # a stable model and an integrator (root 0) do not warn
+        warnings.simplefilter("error")
+        mfmjax.step_response(Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]]))
+        mfmjax.frequency_response(Model.from_coefficients([0.0, 3.0, 1.0], [[1.0]]))

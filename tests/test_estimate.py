@@ -57,9 +57,11 @@ def test_estimate_says_when_its_model_is_unstable():
     u = (np.sin(1.3 * t) + 0.5 * np.sign(np.sin(0.4 * t)))[:, None]
     y = np.asarray(mfmjax.simulate(plant, u, dt=0.05))
     sig = mfmjax.Signals(y + 1e-3 * np.random.default_rng(0).standard_normal(400), u, dt=0.05)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         est = mfmjax.estimate(sig, n=(2,), N=(3,), M=(3,), h=(2.0,))
+    assert any("estimate(): the model has a pole with Re >= 0 (unstable)" in str(w.message)
+               for w in caught)  # warned too, not only in the notes (added 2026-11-27)
     assert float(est.model.a[0]) < 0
     assert any("Re >= 0 (unstable)" in note for note in est.notes)
     assert "Re >= 0 (unstable)" in est.summary()
