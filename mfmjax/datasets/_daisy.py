@@ -58,7 +58,12 @@ def _locate(folder: str, file: str, path) -> str:
 
 def daisy(name: str, *, path=None, offset: bool = True, output: str | None = None) -> Signals:
     """One DaISy record as `Signals` (`name` in `DAISY`: heat_exchanger, dryer, glass_furnace,
-    heating_system). `output` picks another output column (e.g. "wet_bulb", "y3")."""
+    heating_system). `output` picks another output column (e.g. "wet_bulb", "y3").
+
+    Unlike `Signals`, whose default `offset=None` lets the data decide, the loader's default
+    is `offset=True` (the term estimated, whatever the record's level); pass `offset=None` for
+    the data's decision, as `benchmarks/real_data.py` does. Times start at t0 = 0 at the first
+    row (the files' own time or sample-index column, which starts at 1, is not read)."""
     if name not in DAISY:
         raise ValueError(f"daisy(): unknown dataset {name!r}; use one of {sorted(DAISY)}")
     folder, file, cols, out, inputs, dt, inter, _ = DAISY[name]
