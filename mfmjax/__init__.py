@@ -45,6 +45,7 @@ from ._online import OnlineOutputs as OnlineOutputs  # noqa: E402
 from ._online import OnlineState as OnlineState  # noqa: E402
 from ._output_error import OutputErrorFit as OutputErrorFit  # noqa: E402
 from ._output_error import output_error as output_error  # noqa: E402
+from ._persist import load_covariance as load_covariance  # noqa: E402
 from ._persist import load_model as load_model  # noqa: E402
 from ._persist import save_model as save_model  # noqa: E402
 from ._prepare import Trend as Trend  # noqa: E402
@@ -80,7 +81,7 @@ __all__ = [  # the public names (tests/test_fuzz.py covers each one)
     "StateSpace", "Status", "Structure", "closed_form", "constrained_solve", "cramer_rao",
     "datasets", "enable_compile_cache", "Estimate", "estimate", "estimate_outputs",
     "final_state", "fit_percent", "gram", "identify",
-    "initial_state", "kernel_weights", "load_model", "modulated_signals", "moving_final_states",
+    "initial_state", "kernel_weights", "load_covariance", "load_model", "modulated_signals", "moving_final_states",
     "observe", "online", "output_error", "performance_index", "phi", "phi_integral", "phi_scaled",
     "refine", "save_model", "scores", "search", "simulate", "srivc", "state_space", "to_control",
     "to_scipy", "Comparison", "FrequencyResponse", "Residuals", "StepResponse", "compare",

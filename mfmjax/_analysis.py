@@ -540,22 +540,11 @@ def frequency_response(model, w=None, *, covariance=None, n_points: int = 400):
 
 def saved_covariance(path, model: Model):
     """(covariance or None, a sentence saying which) from a model file written by `save_model`
-    (its optional "covariance" entry, checked against the model's free parameters)."""
-    import json
+    (`load_covariance`)."""
+    from ._persist import load_covariance
 
-    with open(path, "rb") as fh:
-        doc = json.loads(fh.read().decode("utf-8"))
-    entry = doc.get("covariance") if isinstance(doc, dict) else None
-    if entry is None:
+    cov = load_covariance(path, model)
+    if cov is None:
         return None, ("no bands: the model file has no covariance (save it with "
                       "save_model(model, path, covariance=estimate.covariance))")
-    free = list(free_parameters(model)[0])
-    try:
-        names, cov = list(entry["names"]), np.asarray(entry["matrix"], dtype=np.float64)
-    except (KeyError, TypeError, ValueError):
-        raise ValueError(f"{path}: the covariance entry needs 'names' and a numeric "
-                         "'matrix'") from None
-    if names != free or cov.shape != (len(free), len(free)) or not np.all(np.isfinite(cov)):
-        raise ValueError(f"{path}: the covariance is not a finite matrix over the model's free "
-                         f"parameters {free} (got names {names}, shape {cov.shape})")
     return cov, "bands: 99 % (+-2.576 sigma, delta method on the saved covariance)"

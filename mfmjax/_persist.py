@@ -105,6 +105,32 @@ def save_model(model: Model, path, *, covariance=None) -> None:
     atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
 
 
+def load_covariance(path, model: Model | None = None):
+    """The covariance `save_model(..., covariance=...)` stored in a model file (of
+    `free_parameters(model)`, `model` default `load_model(path)`), checked against the model's
+    free parameters; None when the file holds none. For the bands of `step_response` and
+    `frequency_response` on a loaded model (`mfmjax report` reads it the same way)."""
+    from ._output_error import free_parameters
+
+    model = load_model(path) if model is None else model
+    with open(path, "rb") as fh:  # load_model has read and checked it
+        doc = json.loads(fh.read().decode("utf-8"))
+    entry = doc.get("covariance") if isinstance(doc, dict) else None
+    if entry is None:
+        return None
+    free = list(free_parameters(model)[0])
+    try:
+        names, cov = list(entry["names"]), np.asarray(entry["matrix"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"load_covariance(): {path}: the covariance entry needs 'names' and a "
+                         "numeric 'matrix'") from None
+    if names != free or cov.shape != (len(free), len(free)) or not np.all(np.isfinite(cov)):
+        raise ValueError(f"load_covariance(): {path}: the covariance is not a finite matrix "
+                         f"over the model's free parameters {free} (got names {names}, shape "
+                         f"{cov.shape})")
+    return cov
+
+
 def load_model(path) -> Model:
     """Read a model written by `save_model`; clear errors for malformed or foreign files.
 

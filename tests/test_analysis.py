@@ -345,6 +345,15 @@ def test_save_model_keeps_an_optional_covariance(tmp_path):
         "a_0", "a_1", "b_10", "b_11"]
     mfmjax.save_model(model, tmp_path / "plain.json")
     assert saved_covariance(tmp_path / "plain.json", back)[0] is None
+    # the public reader: bands on a loaded model without `mfmjax report`
+    np.testing.assert_array_equal(mfmjax.load_covariance(tmp_path / "m.json"), COV)
+    assert mfmjax.load_covariance(tmp_path / "plain.json") is None
+    band = mfmjax.step_response(back, 5.0, covariance=mfmjax.load_covariance(tmp_path / "m.json"),
+                                n_points=50)
+    assert band.std is not None and band.std[0, -1] > 0  # (zero before the delay)
+    other = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]])  # another parameter layout
+    with pytest.raises(ValueError, match=r"load_covariance\(\): .* not a finite matrix over"):
+        mfmjax.load_covariance(tmp_path / "m.json", other)
     with pytest.raises(ValueError, match=r"save_model\(\): covariance must be a finite \(4, 4\)"):
         mfmjax.save_model(model, tmp_path / "x.json", covariance=np.eye(2))
 

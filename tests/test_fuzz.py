@@ -526,15 +526,19 @@ def test_fuzz_status(code):
     assert int(mfmjax.Status(code)) == code
 
 
-@fuzzes("save_model", "load_model")
+@fuzzes("save_model", "load_model", "load_covariance")
 @FAST
 @given(cut=st.integers(0, 400), flip=st.integers(0, 400))
 def test_fuzz_model_files(tmp_path_factory, cut, flip):
+    from mfmjax._output_error import free_parameters
+
     path = tmp_path_factory.mktemp("fuzz") / "model.json"
-    mfmjax.save_model(fitted(), path)
+    k = len(free_parameters(fitted())[0])
+    mfmjax.save_model(fitted(), path, covariance=np.eye(k))
     raw = path.read_bytes()
     back = mfmjax.load_model(path)
     np.testing.assert_array_equal(np.asarray(back.a), np.asarray(fitted().a))
+    np.testing.assert_array_equal(mfmjax.load_covariance(path), np.eye(k))
     damaged = bytearray(raw[: min(cut, len(raw))] if cut < len(raw) else raw)
     if damaged and flip < len(damaged):
         damaged[flip] ^= 0x5A
@@ -542,6 +546,11 @@ def test_fuzz_model_files(tmp_path_factory, cut, flip):
     ok, model = outcome(lambda: mfmjax.load_model(path), ["load_model()"])
     if ok:  # a flip that still parses must still give a valid model
         honest_model(model)
+    ok, cov = outcome(lambda: mfmjax.load_covariance(path), ["load_model()",
+                                                             "load_covariance()"])
+    if ok and cov is not None:  # the free parameters' covariance, finite
+        n = len(free_parameters(mfmjax.load_model(path))[0])
+        assert cov.shape == (n, n) and np.all(np.isfinite(cov))
 
 
 @fuzzes("enable_compile_cache")
