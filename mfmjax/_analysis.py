@@ -79,9 +79,11 @@ class Comparison(eqx.Module):
 def _check(model, signals, fn):
     _b.require_x64(fn)
     if not isinstance(model, Model):
-        raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}")
+        raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}"
+                        f"{_b.swap_hint(fn, model)}")
     if not isinstance(signals, Signals):
-        raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}")
+        raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}"
+                        f"{_b.swap_hint(fn, signals)}")
     _b.eager_only(fn, signals, model)  # compare, residuals: host-side comparisons
     if model.n_inputs != signals.n_inputs:
         raise ValueError(f"{fn}(): the model has {model.n_inputs} inputs but the signals have "

@@ -43,8 +43,11 @@ def as_records(fn: str, signals) -> tuple[list, bool]:
         raise ValueError(f"{fn}(): the list of records is empty; give at least one Signals")
     if not isinstance(signals, list | tuple) or \
             not all(isinstance(r, Signals) for r in signals):
+        from ._boundary import swap_hint
+
         raise TypeError(f"{fn}(): signals must be a Signals or a list of Signals of one "
-                        f"layout (a batch of records), got {type(signals).__name__}")
+                        f"layout (a batch of records), got {type(signals).__name__}"
+                        f"{swap_hint(fn, signals)}")
     first = signals[0]
     layout = lambda r: (r.n_samples, r.n_inputs, r.dt, r.t0, r.intersample, r.smooth,  # noqa: E731
                         r.offset, r.output_rule)

@@ -254,8 +254,27 @@ def _signals_arg(fn: str, signals):
 
     if not isinstance(signals, Signals):
         raise TypeError(f"{fn}(): signals must be a Signals (mfmjax.Signals(y, u, dt=...)), got "
-                        f"{type(signals).__name__}")
+                        f"{type(signals).__name__}{swap_hint(fn, signals)}")
     return signals
+
+
+def swap_hint(fn: str, value) -> str:
+    """For a Model given where a record goes, or a record where a model goes: the public
+    function's argument order (some take the record first, some the model), else ''."""
+    import inspect
+
+    from ._model import Model
+    from ._signals import Signals
+
+    if not isinstance(value, (Model, Signals)):
+        return ""
+    import mfmjax
+
+    target = getattr(mfmjax, fn, None)
+    if not callable(target):
+        return ""
+    first = [p for p in inspect.signature(target).parameters][:2]
+    return f"; arguments swapped? the order is {fn}({', '.join(first)}, ...)"
 
 
 def _eta(fn: str, eta) -> None:
@@ -453,7 +472,8 @@ def check_cramer_rao(model, u, x0, dt, sigma, length) -> None:
     fn = "cramer_rao"
     require_x64(fn)
     if not isinstance(model, Model):
-        raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}")
+        raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}"
+                        f"{swap_hint(fn, model)}")
     if not is_traced(u):
         u = array(fn, "u", u, ndim=(1, 2))
     K = model.n_inputs

@@ -37,7 +37,10 @@ def _concrete(x) -> bool:
 
 def _check(signals: Signals, structure: Structure, mf: ModulatingFunction, eta):
     if not isinstance(signals, Signals):
-        raise TypeError(f"identify(): signals must be a Signals, got {type(signals).__name__}")
+        from ._boundary import swap_hint
+
+        raise TypeError(f"identify(): signals must be a Signals, got {type(signals).__name__}"
+                        f"{swap_hint('identify', signals)}")
     if not isinstance(structure, Structure):
         raise TypeError(
             f"identify(): structure must be a Structure, got {type(structure).__name__}"

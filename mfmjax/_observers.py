@@ -123,9 +123,11 @@ def observe_forced(
 def _window(model: Model, signals: Signals, window, fn: str):
     require_x64(fn)
     if not isinstance(model, Model):
-        raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}")
+        raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}"
+                        f"{_b.swap_hint(fn, model)}")
     if not isinstance(signals, Signals):
-        raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}")
+        raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}"
+                        f"{_b.swap_hint(fn, signals)}")
     if model.n_inputs != signals.n_inputs:
         raise ValueError(
             f"{fn}(): the model has {model.n_inputs} inputs but the signals have "
@@ -269,7 +271,8 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
     require_x64("moving_final_states")
     if not isinstance(signals, Signals):
         raise TypeError(f"moving_final_states(): signals must be a Signals, got "
-                        f"{type(signals).__name__}")
+                        f"{type(signals).__name__}"
+                        f"{_b.swap_hint('moving_final_states', signals)}")
     T_ob = _b.number("moving_final_states", "T_ob", T_ob, lo=0, lo_open=True,
                      fix="give the observer length in the record's time unit")
     length = round(T_ob / signals.host_dt) + 1

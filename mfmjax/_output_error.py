@@ -212,7 +212,7 @@ def _eager_only(signals: Signals, model) -> None:
     """TypeError for a model that is not a `Model`, and for traced records or models."""
     if not isinstance(model, Model):
         raise TypeError(f"output_error(): model must be a Model (e.g. from identify), got "
-                        f"{type(model).__name__}")
+                        f"{type(model).__name__}{_b.swap_hint('output_error', model)}")
     _b.eager_only("output_error", signals, model)
 
 

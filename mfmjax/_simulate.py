@@ -22,6 +22,7 @@ from ._jit import jit
 from ._linalg import expm, small_matmul
 from ._model import Model, simulation_form
 from ._quadrature import delayed_samples, edge_padded, record_bucket, shift_samples, split_delay
+from ._signals import Signals
 from ._statespace import state_space
 from ._status import Status
 
@@ -121,8 +122,13 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
     """
     require_x64("simulate")
     if not isinstance(model, Model):
-        raise TypeError(f"simulate(): model must be a Model, got {type(model).__name__}")
+        raise TypeError(f"simulate(): model must be a Model, got {type(model).__name__}"
+                        f"{_b.swap_hint('simulate', model)}")
     K = model.n_inputs
+    if isinstance(u, Signals):
+        raise TypeError("simulate(): u must be the inputs (T, K), got a Signals: pass "
+                        "signals.u, or use observe(model, signals) / compare(model, signals) "
+                        "to simulate from the observed initial state")
     u = _b.array("simulate", "u", u, ndim=(1, 2))
     u = (jnp if _b.is_traced(u) else np).asarray(u, dtype=np.float64)  # NumPy: no program
     if u.ndim == 1:

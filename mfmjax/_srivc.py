@@ -431,10 +431,11 @@ def _checked(signals: Signals, model: Model, max_iter, tol):
     as numbers (or as given when traced)."""
     _b.require_x64("srivc")
     if not isinstance(signals, Signals):
-        raise TypeError(f"srivc(): signals must be a Signals, got {type(signals).__name__}")
+        raise TypeError(f"srivc(): signals must be a Signals, got {type(signals).__name__}"
+                        f"{_b.swap_hint('srivc', signals)}")
     if not isinstance(model, Model):
         raise TypeError(f"srivc(): model must be a Model (e.g. from identify), got "
-                        f"{type(model).__name__}")
+                        f"{type(model).__name__}{_b.swap_hint('srivc', model)}")
     K = signals.u.shape[-1]
     if K == 0:
         raise ValueError("srivc(): the signals have no input; SRIVC's instruments are the "

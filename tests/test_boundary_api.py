@@ -516,3 +516,35 @@ def test_audit_messages_name_the_problem(data, fitted, tmp_path):
     ident = mfmjax.OnlineIdentifier(OnlineConfig(dt=1.0, n_inputs=1))
     with pytest.raises(ValueError, match=r"model\(\): no model has been accepted yet"):
         ident.model()
+
+
+def test_swapped_record_and_model_say_the_argument_order():
+    """Some functions take the record first (identify, search, srivc, output_error, ...), some
+    the model (observe, simulate, compare, ...): a Model where a record goes, or the reverse,
+    says the function's order; `simulate` given a Signals as its inputs says to pass its u."""
+    model = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]])
+    u = np.sin(0.1 * np.arange(300))
+    sig = mfmjax.Signals(np.asarray(mfmjax.simulate(model, u, dt=0.1)), u, dt=0.1)
+    mf = mfmjax.ModulatingFunction(3, 3, 2.0)
+    cases = [
+        (lambda: mfmjax.observe(sig, model), r"observe\(\): model must be a Model, got Signals; "
+         r"arguments swapped\? the order is observe\(model, signals, \.\.\.\)"),
+        (lambda: mfmjax.compare(sig, model), r"the order is compare\(model, signals"),
+        (lambda: mfmjax.simulate(sig, u, dt=0.1), r"the order is simulate\(model, u"),
+        (lambda: mfmjax.srivc(model, sig), r"srivc\(\): signals must be .* got Model; arguments "
+         r"swapped\? the order is srivc\(signals, model"),
+        (lambda: mfmjax.output_error(model, sig), r"the order is output_error\(signals, model"),
+        (lambda: mfmjax.identify(model, mfmjax.Structure(2, [0]), mf),
+         r"the order is identify\(signals, structure"),
+        (lambda: mfmjax.search(model, h=2.0), r"the order is search\(signals, n"),
+        (lambda: mfmjax.moving_final_states(sig, model, 2.0, [20.0]),
+         r"the order is moving_final_states\(model, signals"),
+        (lambda: mfmjax.simulate(model, sig, None, dt=0.1),
+         r"simulate\(\): u must be the inputs \(T, K\), got a Signals: pass signals\.u"),
+    ]
+    for call, match in cases:
+        with pytest.raises(TypeError, match=match):
+            call()
+    with pytest.raises(TypeError) as err:  # neither a record nor a model: no hint
+        mfmjax.observe("model.json", sig)
+    assert "swapped" not in str(err.value)
