@@ -453,6 +453,10 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
                                    for (r, _), fs in zip(cand, firsts)], n_max=n_max,
                            max_iter=max_iter, tol=tol)
         sv = [None if v is None else [f.model for f in v] for v in sv_fits]
+        # SRIVC fits that stopped unconverged on a fold (their best iterate, maybe the start):
+        # said in `Estimate.holdout`'s keys
+        stalled = {id(m) for v in sv_fits if v is not None for f in v if not bool(f.converged)
+                   for m in (f.model,)}
         live = [k for k, v in enumerate(sv) if v is not None]
         sv_score = dict(zip(live, hold_scores([(cand[k][0], sv[k]) for k in live])))
         for k, (r, i) in enumerate(cand):
@@ -541,7 +545,9 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
     out = []
     for r in range(R):
         tr, b, method = tried[r], best[r], methods[r]
-        held = {f"{x[3]} n={x[4][0].n} m={list(x[4][0].m)}": x[1] for x in tr}
+        held = {f"{x[3]} n={x[4][0].n} m={list(x[4][0].m)}" + (
+            " (not converged on a fold)" if any(id(m) in stalled for m in x[4]) else ""): x[1]
+            for x in tr}
         held[f"chosen: {method}"] = b[1]
         fit, oe, start = fits.get(r), oes.get(r), starts[r]
         model, names, cov, converged, notes = start, (), None, True, ()

@@ -449,6 +449,11 @@ def test_estimate_recovers_when_srivc_does_not_converge(noisy):
         est = mfmjax.estimate(sig, max_iter=1, **GRID)
     assert est.method == "srivc + output error" and est.converged
     assert est.srivc is not None and not est.srivc.converged
+    # the hold-out table says which SRIVC scores came from fits that stopped unconverged
+    # (their best iterate: the start's score, which read as SRIVC's own before 2026-11-27)
+    srivc_keys = [k for k in est.holdout if k.startswith("srivc ")]
+    assert srivc_keys and all(k.endswith("(not converged on a fold)") for k in srivc_keys)
+    assert not any("not converged" in k for k in est.holdout if k.startswith("mfm "))
     assert est.output_error is not None and est.names == est.output_error.names
     assert any("output error from its best iterate" in note for note in est.notes)
     assert "NOT CONVERGED" not in est.summary()
