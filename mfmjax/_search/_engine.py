@@ -39,10 +39,12 @@ def in_blocks(fn, xs, block: int):
     block = min(block, total)
     padded = -(-total // block) * block
     xs = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], padded - total, 0)]), xs)
-    # leaves with no elements (the inputs' axis of a record without input, K = 0) stay out of
-    # `lax.map`, whose batching reshape cannot infer their sizes; empty outputs likewise
     leaves, tree = jax.tree.flatten(xs)
     full = [x.size > 0 for x in leaves]
+    if all(full):
+        return jax.tree.map(lambda v: v[:total], jax.lax.map(fn, xs, batch_size=block))
+    # leaves with no elements (the inputs' axis of a record without input, K = 0) stay out of
+    # `lax.map`, whose batching reshape cannot infer their sizes; empty outputs likewise
 
     def body(kept):
         it = iter(kept)
