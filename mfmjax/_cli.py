@@ -459,7 +459,12 @@ def _online_config(args, K: int, dt: float, names):
         kwargs["delays"] = _floats(args.delays, "delays")
     if args.intersample:
         kwargs["intersample"] = [s.strip() for s in args.intersample.split(",")]
-    known = set(OnlineConfig.__dataclass_fields__) - {"dt", "n_inputs"}
+    from_columns = {"output_name", "input_names"}  # --output and --inputs name them
+    known = set(OnlineConfig.__dataclass_fields__) - {"dt", "n_inputs"} - from_columns
+    named = sorted(set(kwargs) & from_columns)
+    if named:
+        raise _UserError(f"--config: {', '.join(named)} come from --output and --inputs (the "
+                         "CSV's columns); drop them from the config")
     bad = sorted(set(kwargs) - known)
     if bad:
         raise _UserError(f"--config: unknown setting(s) {bad}; known: {sorted(known)}")
@@ -536,6 +541,12 @@ def _cmd_online(args):
         t = np.arange(y.size) * dt
     else:
         raise _UserError("give --time COLUMN or --dt SECONDS")
+    for option, path in (("--plot", args.plot), ("--checkpoint", args.checkpoint)):
+        folder = os.path.dirname(os.path.abspath(path)) if path else None
+        if folder and not (os.path.isdir(folder) and os.access(folder, os.W_OK)):
+            # said before the run, not after it (a long stream's work was lost)
+            raise _UserError(f"{option} {path}: the folder {folder} does not exist or is not "
+                             "writable; create it or give another path")
     before = {"sse": 0.0, "count": 0, "intervals": 0}
     resumed = partial = False
     if args.checkpoint and os.path.exists(args.checkpoint):

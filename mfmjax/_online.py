@@ -185,11 +185,13 @@ class OnlineConfig(eqx.Module):
             if not 8 * dt <= v:
                 raise ValueError(f"OnlineConfig(): {name} must span at least 8 samples (got {v})")
         T_obfin, T_obinit = float(T_obfin), float(T_obinit)
-        if T_obinit > n_reident * interval or T_obinit > n_start * interval:
-            raise ValueError(
-                "OnlineConfig(): T_obinit must fit in the identification windows "
-                f"(n_reident * interval = {n_reident * interval:g})"
-            )
+        for name, count in (("n_start", n_start), ("n_reident", n_reident)):
+            if T_obinit > count * interval:
+                raise ValueError(
+                    f"OnlineConfig(): T_obinit ({T_obinit:g}) must fit in the identification "
+                    f"window of {name} intervals ({name} * interval = {count * interval:g}); "
+                    f"raise {name} or lower T_obinit"
+                )
         tr_corr = _b.number(fn, "tr_corr", tr_corr)
         if not 0 <= tr_corr <= 1:
             raise ValueError(f"OnlineConfig(): tr_corr must lie in [0, 1] (got {tr_corr})")
@@ -202,9 +204,11 @@ class OnlineConfig(eqx.Module):
         self.T_obfin, self.T_obinit, self.tr_corr = T_obfin, T_obinit, tr_corr
         self.n = tuple(_b.integers(fn, "n", n, lo=1, fix="orders are whole numbers, e.g. "
                                    "n=(2, 3)"))
-        if m is not None and (isinstance(m, (str, bytes)) or not isinstance(m, (list, tuple))):
+        if m is not None and (isinstance(m, (str, bytes)) or not isinstance(m, (list, tuple))
+                              or not all(isinstance(mk, (list, tuple)) for mk in m)):
+            # a flat list (m=[0, 1]) would read as one fixed order per input: refused
             raise TypeError(f"OnlineConfig(): m must list, per input, the numerator orders to try "
-                            f"(e.g. m=[[0, 1]] * {K}), got {m!r}")
+                            f"(e.g. m=[[0, 1]] * {K}, one list per input), got {m!r}")
         self.m = (tuple(tuple(_b.integers(fn, f"m[{k}]", mk, lo=0)) for k, mk in enumerate(m))
                   if m is not None else tuple((0, 1) for _ in range(K)))
         if len(self.m) != K:
@@ -223,6 +227,10 @@ class OnlineConfig(eqx.Module):
                        if delays is not None else (0.0,) * K)
         self.intersample = _tuple(intersample, str) * (K if not isinstance(
             intersample, (list, tuple)) else 1)
+        for v in (smooth if isinstance(smooth, (list, tuple)) else [smooth]):
+            if not isinstance(v, (bool, np.bool_)):  # "false" or "no" would read as True
+                raise TypeError(f"OnlineConfig(): smooth must be True or False (or one per "
+                                f"input), got {smooth!r}")
         self.smooth = _tuple(smooth, bool) * (K if not isinstance(smooth, (list, tuple)) else 1)
         for name, v in (("delays", self.delays), ("intersample", self.intersample),
                         ("smooth", self.smooth)):
@@ -236,6 +244,8 @@ class OnlineConfig(eqx.Module):
                 f"({n_reident * interval / 2:g}); lower h or raise n_reident"
             )
         self.output_rule = _b.choice(fn, "output_rule", output_rule, ("cubic", "foh"))
+        if not isinstance(offset, (bool, np.bool_)):  # "false" would read as True
+            raise TypeError(f"OnlineConfig(): offset must be True or False, got {offset!r}")
         self.offset = bool(offset)
         p = max(self.n) + 1 + sum(max(mk) + 1 for mk in self.m) + int(self.offset)
         if eta is not None:
@@ -254,6 +264,9 @@ class OnlineConfig(eqx.Module):
         self.output_name = str(output_name)
         self.input_names = (_tuple(input_names, str) if input_names is not None
                             else tuple(f"u{k + 1}" for k in range(K)))
+        if len(self.input_names) != K:
+            raise ValueError(f"OnlineConfig(): input_names needs one name per input ({K}), got "
+                             f"{list(self.input_names)}")
         self.mode = mode
         self.improvements = tuple(v for v in IMPROVEMENTS if v in improvements)
         self.delay_step = _b.number(fn, "delay_step", delay_step, lo=0, lo_open=True)
@@ -267,10 +280,15 @@ class OnlineConfig(eqx.Module):
         buffer = self.buffer
         gib = buffer * (K + 1) * 8 / 2**30
         if gib > MAX_BUFFER_GIB:
+            S = self.samples  # which setting makes the buffer: the windows, or T_obfin
+            windows = max(self.n_start, self.n_reident + int("rank" in self.improvements)) * S
+            cause = (f"T_obfin={T_obfin:g} ({round(T_obfin / dt) + 1:.3g} samples) sets it; "
+                     "lower T_obfin" if buffer > windows else
+                     f"interval={interval:g} is {samples:.3g} samples of dt={dt:g}; use a "
+                     "coarser dt, a shorter interval or fewer intervals (n_start, n_reident)")
             raise ValueError(
                 f"OnlineConfig(): the sample buffer would hold {buffer:.3g} samples per signal "
-                f"({gib:.3g} GiB, limit {MAX_BUFFER_GIB:g} GiB): interval={interval:g} is "
-                f"{samples:.3g} samples of dt={dt:g}; use a coarser dt or a shorter interval"
+                f"({gib:.3g} GiB, limit {MAX_BUFFER_GIB:g} GiB): {cause}"
             )
 
     # derived sizes (samples)
@@ -1041,8 +1059,16 @@ def update(state: OnlineState, t, y, u):
     idx = np.round((t - t0) / c.dt).astype(np.int64)
     if np.any(np.abs(t - (t0 + idx * c.dt)) > 1e-6 * c.dt):
         raise ValueError(f"update(): t is not on the sampling grid t0 + i*dt (dt={c.dt:g})")
-    if np.any(np.diff(idx) <= 0) or (idx.size and idx[0] < int(state.n_seen)):
-        raise ValueError("update(): t must increase and continue after the samples already fed")
+    back = np.flatnonzero(np.diff(idx) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise ValueError(f"update(): t must increase: sample {i} of the chunk (t={t[i]:g}) "
+                         f"follows t={t[i - 1]:g}")
+    if idx.size and idx[0] < int(state.n_seen):
+        raise ValueError(f"update(): t must continue after the samples already fed: the chunk "
+                         f"starts at t={t[0]:g}, the next expected sample is at "
+                         f"t={t0 + int(state.n_seen) * c.dt:g}; drop the samples before it "
+                         "(OnlineIdentifier.next_time)")
     state = eqx.tree_at(lambda s: s.t0, state, np.asarray(t0))
     ts, ys, ps, ms, events, models = [], [], [], [], [], []
     pos = 0
@@ -1241,6 +1267,10 @@ class OnlineIdentifier:
         self.models: list[dict] = []
         self.events: list[dict] = []
         self._series: list[OnlineOutputs] = []
+        # squared prediction errors since the identifier started, across save/load and
+        # without the history: sum, count, intervals (`mse`; the CLI's checkpoints too)
+        self.prediction = {"sse": 0.0, "count": 0, "intervals": 0}
+        self._resumed = False
 
     def update(self, t, y, u) -> OnlineOutputs:
         self.state, out = update(self.state, t, y, u)
@@ -1248,6 +1278,10 @@ class OnlineIdentifier:
             if self.models:
                 self.models[-1]["sim_end"] = rec["sim_start"]
             self.models.append(dict(rec))
+        ok = np.isfinite(out.y_pred) & np.isfinite(out.y)
+        self.prediction = {"sse": self.prediction["sse"] + float(np.sum(
+            (out.y[ok] - out.y_pred[ok]) ** 2)), "count": self.prediction["count"] + int(ok.sum()),
+            "intervals": self.prediction["intervals"] + len(out.events)}
         if self.keep_history:
             self.events.extend(out.events)
             self._series.append(out)
@@ -1261,10 +1295,15 @@ class OnlineIdentifier:
         return {k: np.concatenate([getattr(o, k) for o in self._series]) for k in keys}
 
     def mse(self) -> float:
-        """Mean square prediction error over the predicted samples (the paper's figure)."""
-        s = self.series()
-        ok = np.isfinite(s["y_pred"]) & np.isfinite(s["y"])
-        return float(np.mean((s["y"][ok] - s["y_pred"][ok]) ** 2)) if ok.any() else math.nan
+        """Mean square prediction error over every predicted sample since the identifier
+        started (the paper's figure), across `save`/`load` and with `keep_history=False` too;
+        NaN before the first prediction."""
+        if self.keep_history and not self._resumed:  # the series holds every sample
+            s = self.series()
+            ok = np.isfinite(s["y_pred"]) & np.isfinite(s["y"])
+            return float(np.mean((s["y"][ok] - s["y_pred"][ok]) ** 2)) if ok.any() else math.nan
+        p = self.prediction
+        return p["sse"] / p["count"] if p["count"] else math.nan
 
     def model(self, number: int = -1) -> Model:
         """A model record as a `Model` (default: the current one)."""
@@ -1290,15 +1329,28 @@ class OnlineIdentifier:
         return float(self.state.t0) + n * self.state.config.dt if n else None
 
     def save(self, path) -> None:
-        """The state plus the model records (the prediction series is not saved)."""
-        save(path, self.state, extra={"models": self.models})
+        """The state, the model records and the running prediction error (`mse` goes on
+        after `load`); the prediction series itself is not saved."""
+        save(path, self.state, extra={"models": self.models, "prediction": self.prediction})
 
     @classmethod
     def load(cls, path, keep_history: bool = True) -> OnlineIdentifier:
+        """An identifier from a checkpoint of `save` (or of `mfmjax online --checkpoint`):
+        feed it the samples after the last one it saw (`next_time`)."""
         state, extra = load_with_extra(path)
         ident = cls(state=state, keep_history=keep_history)
         ident.models = list(extra.get("models", []))
+        if "prediction" in extra:
+            ident.prediction = {k: extra["prediction"][k] for k in ident.prediction}
+        ident._resumed = True
         return ident
+
+    @property
+    def next_time(self) -> float | None:
+        """The time of the next sample the identifier expects (None before the first)."""
+        if int(self.state.n_seen) == 0:
+            return None
+        return float(self.state.t0) + int(self.state.n_seen) * self.state.config.dt
 
 
 def model_table(models, end=None) -> str:

@@ -237,12 +237,37 @@ ONLINE = ["--output", "temp", "--inputs", "u1,u2", "--time", "time", "--intersam
         ("h = [50.0, inf]\n", "--config: h = [50.0, inf] in"),
         ("interval = 1e9\n", "GiB"),  # 1e9 samples per interval: refused before allocating
         ("online = 3\n", "must be a table"),
+        # a flat m read as one fixed order per input (16 candidates instead of 64, silently)
+        ("m = [0, 1]\n", "m must list, per input, the numerator orders to try (e.g. "
+         "m=[[0, 1]] * 2, one list per input), got [0, 1]"),
+        ('offset = "false"\n', "offset must be True or False, got 'false'"),  # read as True
+        ('smooth = "yes"\n', "smooth must be True or False"),
+        # the CLI names them from the columns (a short list crashed at the first identification)
+        ('input_names = ["a"]\n', "--config: input_names come from --output and --inputs"),
+        ("n_start = 1\n", "T_obinit (1000) must fit in the identification window of n_start "
+         "intervals (n_start * interval = 250); raise n_start or lower T_obinit"),
+        ("T_obfin = 1e9\n", "T_obfin=1e+09 (1e+09 samples) sets it; lower T_obfin"),
     ],
 )
 def test_online_config_values(plant, capsys, tmp_path, toml, match):
     cfg = tmp_path / "c.toml"
     cfg.write_text(toml)
     _one_line_error(capsys, 2, ["online", plant["head"], *ONLINE, "--config", str(cfg)], match)
+
+
+def test_online_output_folders_are_checked_before_the_run(plant, capsys, monkeypatch):
+    """--plot and --checkpoint in a folder that does not exist: one line, exit 2, before any
+    sample is processed (they were written after the whole run, whose work was then lost)."""
+    from mfmjax import _online
+
+    def never(*args, **kwargs):
+        raise AssertionError("the stream was processed before the paths were checked")
+
+    monkeypatch.setattr(_online.OnlineIdentifier, "update", never)
+    for option in ("--plot", "--checkpoint"):
+        _one_line_error(capsys, 2, ["online", plant["head"], *ONLINE, option,
+                                    "/nonexistent/out.file"],
+                        f"{option} /nonexistent/out.file: the folder /nonexistent does not exist")
 
 
 def test_online_memory_bound(plant, capsys, tmp_path, monkeypatch):

@@ -190,6 +190,29 @@ def test_checkpoint_resume_equals_uninterrupted(switching, tmp_path):
         joined = np.concatenate([b[key], r[key]])
         np.testing.assert_array_equal(joined, a[key])
     assert resumed.models == full.models  # the wrapper keeps its records in the checkpoint
+    # the running prediction error goes through the checkpoint: mse() after the resume is the
+    # whole run's (it was the resumed part's alone), the same sums in another order (1e-12)
+    assert full.mse() > 0 and resumed.mse() == pytest.approx(full.mse(), rel=1e-12)
+    # the next expected time, and a chunk that starts before it says so
+    assert part.next_time == pytest.approx(float(t[cut]), rel=1e-15)
+    again = OnlineIdentifier.load(path)
+    with pytest.raises(ValueError, match=r"the chunk starts at t=0, the next expected sample "
+                       r"is at t=4321; drop the samples before it"):
+        again.update(t, y, u)
+    with pytest.raises(ValueError, match=r"t must increase: sample 2 of the chunk \(t=4322\) "
+                       r"follows t=4323"):
+        again.update(t[[cut, cut + 2, cut + 1]], y[:3], u[:3])
+
+
+def test_mse_without_history_equals_mse_with_it(switching):
+    """`keep_history=False` (an endless stream) keeps no series, but mse() still covers every
+    predicted sample (it was NaN): the running sums, in another order than np.mean (1e-12)."""
+    t, y, u, _, full = switching
+    lean = OnlineIdentifier(_config(), keep_history=False)
+    for c0 in range(0, len(t), 97):
+        lean.update(t[c0 : c0 + 97], y[c0 : c0 + 97], u[c0 : c0 + 97])
+    assert lean.series()["t"].size == 0 and lean.events == []
+    assert lean.mse() == pytest.approx(full.mse(), rel=1e-12)
 
 
 def test_single_sample_chunks_equal_large_chunks(switching):
