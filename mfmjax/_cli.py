@@ -475,6 +475,11 @@ def _online_config(args, K: int, dt: float, names):
         config = OnlineConfig(dt=dt, n_inputs=K, **kwargs)
     except (OverflowError, ZeroDivisionError) as err:  # arithmetic on an extreme value
         raise _UserError(f"--config: a setting is out of range ({err})") from None
+    except ValueError as err:
+        if args.time and "whole number" in str(err):  # a jittered time column
+            raise _UserError(f"{err}; dt={dt:g} is the median step of --time {args.time}: "
+                             "give --dt with the sampling interval") from None
+        raise
     _check_memory(config)
     return config, given
 
@@ -601,7 +606,8 @@ def _cmd_online(args):
         from ._plotting import plot_online
 
         plot_online(s, ident.models, args.plot, ylabel=args.output,
-                    title=f"on-line prediction, MSE {mse_run:.4g}")
+                    title=f"on-line prediction, MSE {mse_run:.4g}"
+                    + (" (this call; whole run in the text output)" if resumed else ""))
         res["plot"] = args.plot
     if args.json:
         _print_json(res)

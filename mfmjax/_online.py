@@ -936,7 +936,9 @@ def _close_interval(state: OnlineState, j: int):
         elif not all(r[0] for r in rows):
             event["action"] = "skipped: NaN samples in the identification window"
         elif max(r[3] for r in rows) < c.tr_corr:
-            event["action"] = f"skipped: input-output correlation below tr_corr={c.tr_corr:g}"
+            event["action"] = (f"skipped: input-output correlation below tr_corr={c.tr_corr:g}"
+                               f" (largest over the window's intervals: "
+                               f"{max(r[3] for r in rows):.3g})")
         elif not has and (spike := _outlier(state, j, w)) is not None:
             event["action"] = spike
         elif c.mode == "improved":
@@ -1306,7 +1308,8 @@ class OnlineIdentifier:
         return p["sse"] / p["count"] if p["count"] else math.nan
 
     def model(self, number: int = -1) -> Model:
-        """A model record as a `Model` (default: the current one)."""
+        """A model record as a `Model`: `number` indexes `models` (0-based, so the table's
+        model nr k is `model(k - 1)`; default -1, the current one)."""
         count = len(self.models)
         if isinstance(number, bool) or not isinstance(number, int | np.integer) \
                 or not -count <= number < count:

@@ -270,6 +270,17 @@ def test_online_output_folders_are_checked_before_the_run(plant, capsys, monkeyp
                         f"{option} /nonexistent/out.file: the folder /nonexistent does not exist")
 
 
+def test_online_jittered_time_column_suggests_dt(plant, capsys, tmp_path):
+    """A time column with a drifting step (a historian's timestamps): dt is its median step,
+    not a whole fraction of the interval; the error says where dt came from and to give --dt."""
+    t, y, u, _ = switching_experiment(n_intervals=20)
+    n = CUT
+    jittered = _write_csv(tmp_path / "jit.csv", ["time", "temp", "u1", "u2"],
+                          [t[:n] * 1.00007, y[:n], u[:n, 0], u[:n, 1]])
+    _one_line_error(capsys, 2, ["online", str(jittered), *ONLINE],
+                    "is the median step of --time time: give --dt with the sampling interval")
+
+
 def test_online_memory_bound(plant, capsys, tmp_path, monkeypatch):
     """interval = 1e5 samples: a 0.8 M-sample buffer (19 MB) whose identification work is
     about _WORK_PER_BUFFER times that (4.9 GB), refused when 1 GiB is available."""

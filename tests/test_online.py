@@ -131,6 +131,12 @@ def test_correlation_test_blocks_identification():
     ident = _run(t, y, u, _config(tr_corr=0.99))
     assert not ident.models
     assert any("correlation below tr_corr" in e["action"] for e in ident.events)
+    # the message gives the measured value (a user could not tell 0.98 from 0.0)
+    import re
+
+    said = [float(m.group(1)) for e in ident.events
+            if (m := re.search(r"largest over the window's intervals: ([\d.e+-]+)\)", e["action"]))]
+    assert said and all(0 <= v < 0.99 for v in said)
 
 
 def test_outlier_is_not_adopted_and_kept_model_is_reported():
