@@ -1067,8 +1067,8 @@ def update(state: OnlineState, t, y, u):
         raise ValueError(f"update(): t must increase: sample {i} of the chunk (t={t[i]:g}) "
                          f"follows t={t[i - 1]:g}")
     if idx.size and idx[0] < int(state.n_seen):
-        raise ValueError(f"update(): t must continue after the samples already fed: the chunk "
-                         f"starts at t={t[0]:g}, the next expected sample is at "
+        raise ValueError(f"update(): t must increase and continue after the samples already "
+                         f"fed: the chunk starts at t={t[0]:g}, the next expected sample is at "
                          f"t={t0 + int(state.n_seen) * c.dt:g}; drop the samples before it "
                          "(OnlineIdentifier.next_time)")
     state = eqx.tree_at(lambda s: s.t0, state, np.asarray(t0))
