@@ -524,7 +524,7 @@ def _check_memory(config) -> None:
 
 
 def _cmd_online(args):
-    from ._online import OnlineIdentifier, load_with_extra, model_table, save
+    from ._online import OnlineIdentifier, load_with_extra, model_table
     from ._signals import read_csv
 
     cols = read_csv(args.file, [c.strip() for c in args.names.split(",")] if args.names else None)
@@ -576,12 +576,11 @@ def _cmd_online(args):
         if progress is not None:
             progress(min(c0 + chunk, t.size), t.size)
     s = ident.series()
-    ok = np.isfinite(s["y_pred"]) & np.isfinite(s["y"])
-    run = {"sse": float(np.sum((s["y"][ok] - s["y_pred"][ok]) ** 2)), "count": int(ok.sum()),
-           "intervals": len(ident.events)}
+    run = dict(ident.prediction)  # this call's squared errors (the wrapper's running sums)
     total = {k: before[k] + run[k] for k in run}
-    if args.checkpoint:
-        save(args.checkpoint, ident.state, extra={"models": ident.models, "prediction": total})
+    if args.checkpoint:  # the whole run's sums go on with the state, for the next resume
+        ident.prediction = total
+        ident.save(args.checkpoint)
     mse = total["sse"] / total["count"] if total["count"] else math.nan
     mse_run = run["sse"] / run["count"] if run["count"] else math.nan
     if resumed:
