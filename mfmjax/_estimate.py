@@ -745,6 +745,10 @@ def _shifted_back(out, ybar, ubar):
     """A stage's result on shifted data (`_staged_many`) at the original levels, with its
     covariance."""
     back = _shift_offset(out.model, ybar, ubar, -1.0)
+    theta = np.array(jax.device_get(back.theta), dtype=np.float64)
+    if theta.shape == (len(out.names),):  # the fitted free parameters: their offset too
+        theta[out.names.index("offset")] = float(back.offset)
+        back = eqx.tree_at(lambda q: q.theta, back, jax.device_put(theta))
     # covariance of (.., b_k0, .., offset): d offset / d a_0 = ybar, d / d b_k0 = -ubar_k
     J = np.eye(len(out.names))
     row = out.names.index("offset")

@@ -603,10 +603,37 @@ class Signals(eqx.Module):
     @classmethod
     def from_dataframe(cls, df, *, output: str, inputs: Sequence[str] = (), time=None, dt=None,
                        **kwargs) -> Signals:
-        """Build from a pandas DataFrame (pandas is optional and only needed here)."""
-        columns = {str(c): df[c].to_numpy(dtype=np.float64, na_value=np.nan) for c in df.columns}
+        """Build from a pandas DataFrame (pandas is optional and only needed here).
+
+        `time` names a column or the index (its name). Date-times (datetime64, with or without
+        a time zone) and durations (timedelta64) are read as seconds since the first one, so
+        `dt`, `h` and the delays are in seconds; numbers are taken in their own unit."""
+        cols = {str(c): c for c in df.columns}
+        if time is not None and str(time) not in cols and df.index.name is not None \
+                and str(df.index.name) == str(time):
+            df = df.reset_index()
+            cols = {str(c): c for c in df.columns}
+        wanted = {str(c) for c in [output, *inputs] + ([time] if time is not None else [])}
+        columns = {name: (_dataframe_column(df[c], name) if name in wanted else None)
+                   for name, c in cols.items()}
         return cls.from_columns(columns, output=output, inputs=inputs, time=time, dt=dt,
                                 source="DataFrame", **kwargs)
+
+
+def _dataframe_column(series, name: str) -> np.ndarray:
+    """A DataFrame column as float64: date-times and durations in seconds since the first."""
+    if series.dtype.kind in "mM":  # timedelta64 / datetime64 (a tz-aware dtype too)
+        first = series.dropna()
+        if first.empty:
+            return np.full(len(series), np.nan)
+        return (series - first.iloc[0]).dt.total_seconds().to_numpy(np.float64, na_value=np.nan)
+    try:
+        return series.to_numpy(dtype=np.float64, na_value=np.nan)
+    except (TypeError, ValueError):
+        cell = next((v for v in series if not _is_number(str(v))), None)
+        raise ValueError(f"DataFrame: column {name!r} holds {cell!r}, not a number: convert it "
+                         "(pandas.to_numeric; pandas.to_datetime for a time column, which is "
+                         "then read in seconds)") from None
 
 
 _COMMENT = ("{path}: line {line} starts with '#'; mfmjax reads no comment lines after the "

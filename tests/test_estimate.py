@@ -554,3 +554,20 @@ def test_estimate_keeps_a_converged_srivc_over_a_polish_that_does_not_converge()
     assert any("the converged SRIVC fit is returned" in note for note in est.notes)
     assert np.all(est.std_errors[:3] < np.abs(_params(est.model)))  # a_0, a_1, b_10: determined
 
+
+
+def test_estimate_theta_is_its_free_parameters_at_the_record_levels():
+    """`estimate` fits on data shifted to their starting levels and maps the offset back; the
+    returned model's theta (its fitted free parameters, as `free_parameters` orders them) held
+    the offset at the shifted levels (-0.0093 beside an offset of 11.2 in a plant-data
+    walkthrough). It now equals the model's own coefficients, the offset included."""
+    from mfmjax._output_error import free_parameters
+
+    clean = simulated_experiment(TRUE, dt=DT, n_samples=600, seed=7)
+    sig = mfmjax.Signals(np.asarray(clean.y) + 50.0, np.asarray(clean.u) + 3.0, dt=DT,
+                         intersample="zoh", offset=True)
+    est = mfmjax.estimate(sig, h=2.0, n=(1,), N=3, M=3, m=[[0]])
+    assert est.model.has_offset and abs(float(est.model.offset)) > 1.0
+    names, values = free_parameters(est.model)
+    np.testing.assert_allclose(np.asarray(est.model.theta), values, rtol=1e-12, atol=0)
+    assert names[-1] == "offset" and est.model.to_dict()["theta"][-1] == float(est.model.offset)

@@ -121,3 +121,21 @@ def test_from_dataframe():
     assert s.dt == 0.5 and s.intersample == ("zoh",)
     with pytest.raises(ValueError, match="unknown column 'u9'"):
         Signals.from_dataframe(df, output="y", inputs=["u9"], time="t")
+
+
+def test_from_dataframe_reads_date_times_in_seconds():
+    """A time column parsed by pandas (`parse_dates`) is datetime64: it was read as its integer
+    count of (micro/nano)seconds, so dt = 1e6 and a 5 s delay meant 5 us, with status ok. Date-
+    times (also tz-aware, also as the index) and durations are now seconds since the first; a
+    text column in use is refused by name; text columns not in use are no obstacle."""
+    pd = pytest.importorskip("pandas")
+    y, u = _ok()
+    stamps = pd.date_range("2024-03-05 08:00:00", periods=50, freq="500ms")
+    df = pd.DataFrame({"time": stamps, "y": y, "u1": u[:, 0], "tag": ["ok"] * 50})
+    for frame in (df, df.set_index("time"), df.assign(time=stamps.tz_localize("Europe/Berlin")),
+                  df.assign(time=stamps - stamps[0])):
+        s = Signals.from_dataframe(frame, output="y", inputs=["u1"], time="time")
+        assert s.dt == 0.5 and s.t0 == 0.0
+        np.testing.assert_array_equal(np.asarray(s.y), y)
+    with pytest.raises(ValueError, match="column 'tag' holds 'ok', not a number"):
+        Signals.from_dataframe(df, output="y", inputs=["tag"], time="time")
