@@ -669,15 +669,20 @@ def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         raise ValueError(f"{path}: the file is empty; expected a header row")
     if first_line.lstrip().startswith("#") and names is None:
         first_line = first_line.lstrip()[1:]  # numpy.savetxt's header: "# t,y,u"
-    comma = "," in first_line
-    if not comma and ";" in first_line:
+    if first_line.count(";") > first_line.count(","):  # names may hold commas: "T [degC, PV]"
         raise ValueError(
             f"{path}: fields are separated by ';' (line 1: {first_line[:40]!r}); mfmjax reads "
-            "comma-separated files with '.' as the decimal point: re-export the file as CSV"
+            "comma-separated files with '.' as the decimal point: re-export the file as CSV, or "
+            "read it with pandas.read_csv(path, sep=';', decimal=',') and "
+            "Signals.from_dataframe"
         )
+    comma = "," in first_line
+    tab = names is None and not comma and "\t" in first_line  # names may hold spaces
 
     def split(line):
-        return [c.strip() for c in (next(csv.reader([line])) if comma else line.split())]
+        cells = (next(csv.reader([line])) if comma else line.split("\t") if tab
+                 else line.split())
+        return [c.strip() for c in cells]
 
     if names is None:
         header, body, first = split(first_line), rest, 2
@@ -687,32 +692,68 @@ def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         raise ValueError(f"{path}: duplicate column names {header}")
     if not body.strip():
         raise ValueError(f"{path}: no data rows after the header")
-    data = _parse_fast(body, comma, len(header))
-    if data is None:  # the careful path: empty cells as NaN, or the precise error
-        rows = []
-        lines = (ln for ln in body.splitlines() if ln.strip())
-        for lineno, line in enumerate(lines, start=first):
-            if line.lstrip().startswith("#"):
-                raise ValueError(_COMMENT.format(path=path, line=lineno))
-            row = split(line)
-            if len(row) != len(header):
-                raise ValueError(
-                    f"{path}: line {lineno} has {len(row)} fields but "
-                    + (f"{len(header)} names were given (--names)" if names is not None
-                       else f"the header has {len(header)} columns")
-                    + "; every row needs one field per column"
-                )
+    data = _parse_fast(body, "," if comma else "\t" if tab else None, len(header))
+    if data is not None:
+        return {name: data[:, j] for j, name in enumerate(header)}
+    # the careful path: missing cells as NaN, date-time columns, or the precise error
+    rows, linenos = [], []
+    lines = (ln for ln in body.splitlines() if ln.strip())
+    for lineno, line in enumerate(lines, start=first):
+        if line.lstrip().startswith("#"):
+            raise ValueError(_COMMENT.format(path=path, line=lineno))
+        row = split(line)
+        if len(row) != len(header):
+            raise ValueError(
+                f"{path}: line {lineno} has {len(row)} fields but "
+                + (f"{len(header)} names were given (--names)" if names is not None
+                   else f"the header has {len(header)} columns")
+                + "; every row needs one field per column"
+                + ("" if comma or tab else " (fields are split at commas, else at tabs, else "
+                   "at spaces)")
+            )
+        rows.append(row)
+        linenos.append(lineno)
+    return {name: _csv_column(path, name, [r[j] for r in rows], linenos, first)
+            for j, name in enumerate(header)}
+
+
+MISSING = ("", "nan", "NaN", "NAN", "#N/A", "N/A", "n/a", "NA", "#NA", "NULL", "null", "None")
+
+
+def _csv_column(path, name: str, cells: list, linenos: list, first: int) -> np.ndarray:
+    """One column of the careful path as float64: a missing value (`MISSING`: an empty cell,
+    NaN, #N/A, NULL, ...) as NaN; ISO 8601 date-times ("2024-03-05 08:00:00", a final Z for
+    UTC) as seconds since the first; anything else refused with its line."""
+    out = np.full(len(cells), np.nan)
+    bad = []
+    for i, c in enumerate(cells):
+        if c in MISSING:
+            continue
+        try:
+            out[i] = float(c)
+        except ValueError:
+            bad.append(i)
+    if not bad:
+        return out
+    i = bad[0]
+    if len(bad) == len(cells) - sum(c in MISSING for c in cells):  # no number in the column
+        stamps = np.full(len(cells), np.datetime64("NaT", "ns"))
+        for j in bad:
             try:
-                rows.append([float(c) if c else math.nan for c in row])
+                stamps[j] = np.datetime64(cells[j][:-1] if cells[j].endswith("Z") else cells[j],
+                                          "ns")
             except ValueError:
-                j, cell = next((j, c) for j, c in enumerate(row) if c and not _is_number(c))
-                raise ValueError(
-                    f"{path}: line {lineno} has a non-numeric value {cell[:20]!r} in column "
-                    f"{header[j]!r}; every row after the header must hold numbers (remove "
-                    "unit or comment rows, write the decimal point as '.')"
-                ) from None
-        data = np.asarray(rows, dtype=np.float64)
-    return {name: data[:, j] for j, name in enumerate(header)}
+                break
+        else:
+            return (stamps - stamps[bad[0]]) / np.timedelta64(1, "s")
+        i = j if j != bad[0] else i  # the first cell that is not a date-time like the others
+    cell = cells[i]
+    hint = ("a unit row under the header? remove it" if linenos[i] == first else
+            "missing values may be empty, NaN or #N/A; a time column may hold ISO 8601 "
+            "date-times (2024-03-05 08:00:00), read as seconds since the first; write the "
+            "decimal point as '.'")
+    raise ValueError(f"{path}: line {linenos[i]} has a non-numeric value {cell[:20]!r} in "
+                     f"column {name!r}; every row after the header must hold numbers ({hint})")
 
 
 def _is_number(cell: str) -> bool:
@@ -739,15 +780,15 @@ def _first_line(text: str):
 _PANDAS_MIN_CHARS = 32_000_000  # below this, importing pandas costs more than loadtxt saves
 
 
-def _parse_fast(body: str, comma: bool, n_cols: int):
+def _parse_fast(body: str, sep: str | None, n_cols: int):
     """An all-numeric, complete body parsed in C, or None when the careful path is needed
-    (quoted fields, empty cells, short or long rows, non-numbers: that path names the line)."""
+    (quoted fields, empty cells, short or long rows, non-numbers: that path names the line).
+    `sep`: "," or a tab, or None for any whitespace."""
     import io
     import sys
 
-    if comma and '"' in body:
+    if sep == "," and '"' in body:
         return None
-    sep = "," if comma else None
     try:
         if "pandas" in sys.modules or len(body) > _PANDAS_MIN_CHARS:
             import pandas as pd

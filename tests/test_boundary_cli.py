@@ -436,6 +436,8 @@ def test_demo_results_json_is_strict_when_no_prediction(tmp_path, capsys):
         (bytes(range(256)) * 4, "binary file"),
         (b"\x89PNG\r\n\x1a\n" + bytes(100), "binary file"),
         (b"t;y;u\n0;1,5;2\n1;2,5;3\n", "separated by ';'"),
+        # a name holding a comma ("line 2 has 5 fields but the header has 2 columns")
+        (b"t;TI101 [degC, PV];u\n0;1,5;2\n", r"separated by ';'.*sep=';', decimal=','"),
         ("t,y,u\n0,1,2\n1,2,\xe93\n".encode("latin-1"), r"not a UTF-8 text file \(byte 0xe9"),
         # a comment line in the data: said by its number (a file with comment lines read
         # "line 2 has 3 fields but the header has 2 columns")
@@ -491,16 +493,40 @@ def test_csv_fast_paths_equal_careful_path(tmp_path, fast_path, monkeypatch):
         assert np.array_equal(fast[k], careful[k]) and np.array_equal(fast[k], data[:, j])
 
 
+def test_csv_date_times_and_tabs(tmp_path, fast_path):
+    """A historian's export: ISO 8601 time stamps (refused as text, with advice about unit rows)
+    are read as seconds since the first; a tab-separated header may hold names with spaces
+    (they were split at every space: "line 2 has 4 fields but the header has 7 columns")."""
+    p = tmp_path / "x.csv"
+    p.write_bytes(b"time,y,u\n2024-03-05 08:00:00,1,2\n2024-03-05T08:00:00.5Z,1.5,\n"
+                  b"2024-03-05 08:00:01,2,3\n")
+    cols = _signals.read_csv(p)
+    np.testing.assert_array_equal(cols["time"], [0.0, 0.5, 1.0])
+    np.testing.assert_array_equal(cols["u"], [2.0, np.nan, 3.0])
+    assert mfmjax.Signals.from_csv(p, output="y", time="time").dt == 0.5
+    p.write_bytes(b"time\tTI 101 PV\tFuel flow\n0\t1.5\t2\n1\t1.6\t2.5\n")
+    cols = _signals.read_csv(p)
+    assert list(cols) == ["time", "TI 101 PV", "Fuel flow"]
+    np.testing.assert_array_equal(cols["Fuel flow"], [2.0, 2.5])
+    p.write_bytes(b"time,y\n2024-03-05 08:00:00,1\n05.03.2024 08:00:01,2\n")
+    with pytest.raises(ValueError, match=r"line 3 has a non-numeric value '05.03.2024 08:00:01' "
+                                         r"in column 'time'.*ISO 8601"):
+        _signals.read_csv(p)
+
+
 @pytest.mark.parametrize(
     "text, match, expect",
     [
         ("a,b\n1,2\n3\n", "line 3 has 1 fields", None),  # pandas would pad with NaN
         ("a,b\n1,2\n3,4,5\n", "line 3 has 3 fields", None),
-        ("a,b\n1,2\n3,x\n", "line 3 has a non-numeric value 'x' in column 'b'", None),
+        ("a,b\n1,2\n3,x\n", "line 3 has a non-numeric value 'x' in column 'b'.*empty, NaN "
+                            "or #N/A", None),
+        # missing values as historians and spreadsheets write them (#N/A was refused as text)
+        ("a,b\n1,#N/A\n3,NULL\nN/A,2\n", None, [[1, 3, np.nan], [np.nan, np.nan, 2]]),
         # a units row under the header, a decimal comma: named, with the fix (the message
         # used to ask for --names, as if the file had no header)
         ("a,b\ns,degC\n1,2\n", "line 2 has a non-numeric value 's' in column 'a'; every "
-                                 "row after the header must hold numbers", None),
+                                 "row after the header must hold numbers .a unit row", None),
         ('a,b\n"1,5",2\n', "non-numeric value '1,5' in column 'a'", None),
         ("a,b\n1,2\n\n  \n3,\n", None, [[1, 3], [2, np.nan]]),  # blank lines, empty cell
         ('a,b\n"1",2\n3,4\n', None, [[1, 3], [2, 4]]),  # quoted numbers
