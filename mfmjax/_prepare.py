@@ -249,8 +249,9 @@ def _interp(t_k, v, grid, rule: str, dt: float) -> np.ndarray:
 
 
 def resample_arrays(fn: str, t, y, u, *, dt, intersample="foh", output_rule: str = "linear",
-                    input_names: Sequence[str] | None = None):
-    """The numerics of `resample` as arrays: (t0, y (T,), u (T, K), intersample, names)."""
+                    input_names: Sequence[str] | None = None, output_name: str = "y"):
+    """The numerics of `resample` as arrays: (t0, y (T,), u (T, K), intersample, names);
+    `output_name` names the output in warnings."""
     t = _time(fn, "t", t)
     y = _values(fn, "y", y, t.shape[0], "t")
     dt = _b.number(fn, "dt", dt, lo=0, lo_open=True,
@@ -304,7 +305,7 @@ def resample_arrays(fn: str, t, y, u, *, dt, intersample="foh", output_rule: str
         raise ValueError(f"{fn}(): dt={dt:g} is coarser than the record ({start:g}..{end:g}, "
                          f"{end - start:g} long); a uniform grid needs at least 2 samples: "
                          "choose a smaller dt")
-    for name, t_k in [("y", t)] + [(s[0], s[1]) for s in series]:
+    for name, t_k in [(output_name, t)] + [(s[0], s[1]) for s in series]:
         median = float(np.median(np.diff(t_k)))
         if dt > _COARSE * median:
             warnings.warn(
@@ -312,7 +313,7 @@ def resample_arrays(fn: str, t, y, u, *, dt, intersample="foh", output_rule: str
                 "faster content aliases without a low-pass filter: filter first or choose a "
                 "smaller dt", stacklevel=3)
             break
-    for name, t_k in [("y", t)] + [(s[0], s[1]) for s in series]:
+    for name, t_k in [(output_name, t)] + [(s[0], s[1]) for s in series]:
         gaps = np.diff(t_k)
         big = int(np.argmax(gaps))
         if gaps[big] > _GAP * max(float(np.median(gaps)), dt):
@@ -320,7 +321,8 @@ def resample_arrays(fn: str, t, y, u, *, dt, intersample="foh", output_rule: str
                 f"{fn}(): {name!r} has a gap from {t_k[big]:g} to {t_k[big + 1]:g} "
                 f"({gaps[big]:g}, {gaps[big] / np.median(gaps):.3g} of its median steps): it is "
                 "interpolated across, which no plant did; split the record there and join the "
-                "parts with Signals.concatenate", stacklevel=3)
+                "parts with Signals.concatenate (command line: --identify-window on one side "
+                "of it)", stacklevel=3)
     grid = start + dt * np.arange(steps + 1, dtype=np.float64)
     y_new = _interp(t, y, grid, "cubic" if output_rule == "cubic" else "foh", dt)
     u_new = np.zeros((grid.shape[0], K), dtype=np.float64)
@@ -364,6 +366,6 @@ def resample(t, y, u=None, *, dt, intersample="foh", output_rule: str = "linear"
     names = kwargs.pop("input_names", None)
     t0, y_new, u_new, rules, names = resample_arrays(
         "resample", t, y, u, dt=dt, intersample=intersample, output_rule=output_rule,
-        input_names=names)
+        input_names=names, output_name=str(kwargs.get("output_name", "y")))
     return Signals(y_new, u_new, dt=float(dt), t0=t0, intersample=rules, input_names=names,
                    **kwargs)

@@ -7,7 +7,7 @@ batch axes go in front. Sample k is at time `t0 + k * dt`.
 from __future__ import annotations
 
 import csv
-import math
+import warnings
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -560,6 +560,7 @@ class Signals(eqx.Module):
         arrays = {}
         for name in [output, *inputs] + ([time] if time else []):
             arrays[name] = np.asarray(columns[name], dtype=np.float64)
+        _warn_frozen(source, arrays, [output, *inputs], time)
         u = np.stack([arrays[c] for c in inputs], axis=1) if inputs else None
         if resample is not None:
             from ._prepare import resample_arrays
@@ -571,7 +572,7 @@ class Signals(eqx.Module):
                 t0, y_r, u_r, rules, _ = resample_arrays(
                     "Signals.from_columns", arrays[time], arrays[output],
                     {c: (arrays[time], arrays[c]) for c in inputs}, dt=resample,
-                    intersample=kwargs.pop("intersample", "foh"))
+                    intersample=kwargs.pop("intersample", "foh"), output_name=output)
             except (ValueError, TypeError) as err:
                 raise type(err)(f"{source}: {err}") from None
             return cls(y_r, u_r, dt=float(resample), t0=t0, intersample=rules,
@@ -634,6 +635,29 @@ def _dataframe_column(series, name: str) -> np.ndarray:
         raise ValueError(f"DataFrame: column {name!r} holds {cell!r}, not a number: convert it "
                          "(pandas.to_numeric; pandas.to_datetime for a time column, which is "
                          "then read in seconds)") from None
+
+
+FROZEN_ROWS = 20  # this many repeats of a row in every column used: a frozen logger
+
+
+def _warn_frozen(source: str, arrays: dict, used: list, time) -> None:
+    """Warn where a record's rows repeat in every column used for `FROZEN_ROWS` rows or more
+    (after the first row: a rest at the start is common): a frozen logger or a historian's
+    held value, which noisy plant data never do and which would be fitted as real."""
+    X = np.column_stack([arrays[c] for c in used])
+    same = np.all(X[1:] == X[:-1], axis=1)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], same.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2]):  # rows a..b equal row a
+        if b - a >= FROZEN_ROWS and a > 0:
+            at = (lambda k: f"t={arrays[time][k]:g}") if time else (lambda k: f"row {k}")
+            warnings.warn(
+                f"{source}: {b - a + 1} rows from {at(a)} to {at(b)} repeat the same values in "
+                f"every column used ({', '.join(map(repr, used))}): a frozen logger or a held "
+                "value? They are fitted as real data. Drop those rows and resample "
+                "(resample=DT, --resample DT: the gap is interpolated, with a warning), or "
+                "identify on one side of them (Signals.window, --identify-window)",
+                stacklevel=4)
+            return
 
 
 _COMMENT = ("{path}: line {line} starts with '#'; mfmjax reads no comment lines after the "

@@ -1,3 +1,5 @@
+import warnings
+
 import numpy as np
 import pytest
 
@@ -139,3 +141,41 @@ def test_from_dataframe_reads_date_times_in_seconds():
         np.testing.assert_array_equal(np.asarray(s.y), y)
     with pytest.raises(ValueError, match="column 'tag' holds 'ok', not a number"):
         Signals.from_dataframe(df, output="y", inputs=["tag"], time="time")
+
+
+def test_frozen_rows_are_warned(tmp_path):
+    """A logger that froze for 201 rows mid-record (every column repeating its value) was
+    fitted as real data with status ok (b 27 % low in a walkthrough). Reading such a record
+    now warns with the rows' times and the fix; a rest at the record's start does not warn,
+    nor do 20 repeated rows (FROZEN_ROWS = 20 repeats, i.e. 21 equal rows, is the threshold)."""
+    from mfmjax import _signals
+
+    rng = np.random.default_rng(0)
+    t = np.arange(600.0)
+    y, u = rng.standard_normal(600), rng.standard_normal(600)
+    y[:50], u[:50] = 0.0, 0.0  # the plant at rest before the experiment
+    for n_equal, warns in ((_signals.FROZEN_ROWS, False), (_signals.FROZEN_ROWS + 1, True)):
+        yf, uf = y.copy(), u.copy()
+        yf[300 : 300 + n_equal], uf[300 : 300 + n_equal] = yf[300], uf[300]
+        p = _write(tmp_path, "t,temp,fuel\n" + "".join(
+            f"{a!r},{b!r},{c!r}\n" for a, b, c in zip(t.tolist(), yf.tolist(), uf.tolist())))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            Signals.from_csv(p, output="temp", inputs=["fuel"], time="t")
+        frozen = [w for w in caught if "repeat the same values" in str(w.message)]
+        assert len(frozen) == int(warns), [str(w.message) for w in caught]
+        if warns:
+            assert (f"{n_equal} rows from t=300 to t={299 + n_equal} repeat the same values in "
+                    "every column used ('temp', 'fuel')") in str(frozen[0].message)
+
+
+def test_gap_warning_names_the_column(tmp_path):
+    t = np.r_[np.arange(0.0, 40.0), np.arange(60.0, 100.0)]
+    p = _write(tmp_path, "t,temp,fuel\n" + "".join(f"{a!r},{float(np.sin(a))!r},{float(np.cos(a))!r}\n"
+                                                   for a in t.tolist()))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        Signals.from_csv(p, output="temp", inputs=["fuel"], time="t", resample=1.0)
+    gaps = [str(w.message) for w in caught if "has a gap" in str(w.message)]
+    assert len(gaps) == 2 and "'temp' has a gap from 39 to 60" in gaps[0]  # not 'y'
+    assert "'fuel' has a gap" in gaps[1] and "--identify-window" in gaps[0]
