@@ -92,8 +92,9 @@ def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
             f"estimate(): holdout={holdout:g} leaves hold-out blocks of {block} samples, "
             f"{observer} of them for the initial-state observer (the first "
             f"{OBSERVER_FRACTION:.0%}); an order-{n_top} model needs at least {need} per block "
-            f"and {MIN_WINDOW} for the observer: raise holdout (at most 0.5), lower the largest "
-            "order n or give a longer record")
+            f"and {MIN_WINDOW} for the observer: "
+            + ("raise holdout (at most 0.5), " if holdout < 0.5 else "")
+            + "lower the largest order n or give a longer record")
     plan = plan_search(signals, n=n, N=N, M=M, h=h, m=m, delays=delays, score="E",
                        validate=hold0, identify=list(fit0),
                        observer_window=OBSERVER_FRACTION * (hold0[1] - hold0[0]), eta=None,

@@ -412,14 +412,7 @@ class Signals(eqx.Module):
             raise ValueError(f"Signals(): input_names needs {K} names, got {len(names)}")
         host_y = [(output_name, np.asarray(y))] if _concrete(y) else []
         host_u = [(names[k], np.asarray(u)[:, k]) for k in range(K)] if _concrete(u) else []
-        for label, arr in host_y + host_u:  # columns checked on the host
-            finite = np.isfinite(arr)
-            if not finite.all():
-                row = int(np.argmin(finite))
-                raise ValueError(
-                    f"Signals(): column {label!r} has a NaN or inf sample at row {row}; "
-                    "remove or interpolate it before identification"
-                )
+        _refuse_nonfinite("Signals()", host_y + host_u)  # columns checked on the host
         if _concrete(y) and _concrete(u):
             _refuse_output_as_input(np.asarray(y), np.asarray(u), output_name, names)
         self.y, self.u, self.delays = y, u, delays
@@ -568,6 +561,7 @@ class Signals(eqx.Module):
             if time is None or dt is not None:
                 raise ValueError(f"{source}: resample= needs a time column (time=...) and no dt; "
                                  "it reads the record at its sample times")
+            _refuse_nonfinite(source, [(c, arrays[c]) for c in [output, *inputs]])
             try:
                 t0, y_r, u_r, rules, _ = resample_arrays(
                     "Signals.from_columns", arrays[time], arrays[output],
@@ -635,6 +629,17 @@ def _dataframe_column(series, name: str) -> np.ndarray:
         raise ValueError(f"DataFrame: column {name!r} holds {cell!r}, not a number: convert it "
                          "(pandas.to_numeric; pandas.to_datetime for a time column, which is "
                          "then read in seconds)") from None
+
+
+def _refuse_nonfinite(source: str, columns: list) -> None:
+    """Refuse the first (label, column) holding a NaN or inf, by its row."""
+    for label, arr in columns:
+        finite = np.isfinite(arr)
+        if not finite.all():
+            raise ValueError(
+                f"{source}: column {label!r} has a NaN or inf sample at row "
+                f"{int(np.argmin(finite))}; remove or interpolate it before identification "
+                "(drop the row and resample: resample=DT, --resample DT)")
 
 
 FROZEN_ROWS = 20  # this many repeats of a row in every column used: a frozen logger

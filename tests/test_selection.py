@@ -302,6 +302,10 @@ def test_estimate_says_when_the_hold_out_blocks_are_too_short():
                            r"order-2 model needs at least 8 per block and 8 for the observer: "
                            r"raise holdout"):
             mfmjax.estimate(sig, h=0.5, n=(1, 2), N=3, M=3, holdout=holdout)
+    # at holdout=0.5, its largest, the advice is not to raise it
+    with pytest.raises(ValueError, match=r"8 for the observer: lower the largest order n or "
+                                         r"give a longer record"):
+        mfmjax.estimate(sig.window(0.0, 1.45), h=0.5, n=(1, 2), N=3, M=3, holdout=0.5)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         assert mfmjax.estimate(sig, h=0.5, n=(1, 2), N=3, M=3, holdout=0.35).model.n in (1, 2)

@@ -179,3 +179,13 @@ def test_gap_warning_names_the_column(tmp_path):
     gaps = [str(w.message) for w in caught if "has a gap" in str(w.message)]
     assert len(gaps) == 2 and "'temp' has a gap from 39 to 60" in gaps[0]  # not 'y'
     assert "'fuel' has a gap" in gaps[1] and "--identify-window" in gaps[0]
+
+
+def test_nonfinite_sample_named_by_column_with_resample(tmp_path):
+    """With resample=, a NaN cell was reported as "y has a NaN or inf value at index (2,)"
+    (the resampler's own names); it is now named by its column and row, as without it."""
+    p = _write(tmp_path, "t,temp,fuel\n0,1,2\n1,2,3\n2,,4\n3,4,5\n")
+    for kw in ({}, {"resample": 1.0}):
+        with pytest.raises(ValueError, match=r"column 'temp' has a NaN or inf sample at row 2"):
+            Signals.from_csv(p, output="temp", inputs=["fuel"], time="t", **kw)
+
