@@ -322,6 +322,35 @@ def _names_note(model, sig) -> None:
               f"{', '.join(sig.input_names)}: check the columns and their order", file=sys.stderr)
 
 
+def _record(args, sig) -> dict:
+    """How the identification data were read, saved with the model (`save_model`)."""
+    return {"dt": sig.host_dt, "detrend": getattr(args, "detrend", None)}
+
+
+def _record_note(path: str, args, sig) -> None:
+    """On stderr: the data given to validate/report were read unlike the model's
+    identification data (saved by identify/search --save): --detrend differs (a model of
+    detrended data on the raw record gave fit -23434 % with nothing said), or the sampling
+    step differs tenfold or more (a time column in minutes against seconds)."""
+    with open(path, "rb") as fh:  # load_model has read and checked it
+        saved = json.loads(fh.read().decode("utf-8")).get("record")
+    if not isinstance(saved, dict):
+        return
+    was, now = saved.get("detrend"), getattr(args, "detrend", None)
+    if was != now:
+        print("note: the model was identified on data read "
+              + (f"with --detrend {was} (the model is for deviations from those lines)"
+                 if was else "without --detrend")
+              + f"; these data are read {f'with --detrend {now}' if now else 'as they are'}: "
+              + (f"give --detrend {was} as then" if was else "drop --detrend"), file=sys.stderr)
+    dt = saved.get("dt")
+    if isinstance(dt, (int, float)) and dt > 0 and max(dt / sig.host_dt, sig.host_dt / dt) >= 10:
+        print(f"note: the model was identified on data sampled at dt={dt:g}; these data have "
+              f"dt={sig.host_dt:g}: if their time columns are in different units (s and min), "
+              "convert one: the model's coefficients and delays are in its data's time unit",
+              file=sys.stderr)
+
+
 def _model_settings_note(args, model) -> None:
     """On stderr: --delays or --intersample given to validate/report differ from the saved
     model's, which are used (they were ignored without a word)."""
@@ -357,7 +386,8 @@ def _cmd_identify(args):
         from ._persist import save_model
 
         saved = report["model"] if report else model
-        save_model(saved, args.save, covariance=usable_covariance(saved, cov))
+        save_model(saved, args.save, covariance=usable_covariance(saved, cov),
+                   record=_record(args, sig))
     _offset_note(full)  # after the work: a user error stays one line
     _no_inputs_note(args)
     if args.json:
@@ -800,7 +830,8 @@ def _cmd_search(args):
         from ._persist import save_model
 
         saved = report["model"] if report else result.best()
-        save_model(saved, args.save, covariance=usable_covariance(saved, cov))
+        save_model(saved, args.save, covariance=usable_covariance(saved, cov),
+                   record=_record(args, sig))
     validation = _validation_report(args, sig, report["model"] if report else result.best())
     if not args.estimate:  # estimate's notes say it, with its own decision
         _offset_note(sig)  # after the work: a user error stays one line
@@ -885,6 +916,7 @@ def _cmd_validate(args):
         print("x0            " + " ".join(f"{v:.6e}" for v in res["x0"]))
     _names_note(model, sig)
     _model_settings_note(args, model)
+    _record_note(_model_path(args), args, sig)
 
 
 def _plot_validation(sig, k0, y, y_sim, fit, path):
@@ -949,6 +981,7 @@ def _cmd_report(args):
           f"to {args.o}")
     _names_note(model, sig)
     _model_settings_note(args, model)
+    _record_note(args.model, args, sig)
 
 
 def main(argv=None) -> int:

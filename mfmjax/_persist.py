@@ -80,12 +80,18 @@ def atomic_write(path, data: bytes) -> None:
             os.close(dfd)
 
 
-def save_model(model: Model, path, *, covariance=None) -> None:
+RECORD_KEYS = ("dt", "detrend")  # how the identification data were read (`save_model`)
+
+
+def save_model(model: Model, path, *, covariance=None, record=None) -> None:
     """Write `model` (concrete) to a JSON file (atomically: see `atomic_write`).
 
     `covariance` (optional): of the free parameters (`Estimate.covariance`,
     `OutputErrorFit.covariance`), stored with their names for `mfmjax report`'s bands;
-    `load_model` ignores it, and files without it stay valid."""
+    `load_model` ignores it, and files without it stay valid. `record` (optional): how the
+    identification data were read, `{"dt": step, "detrend": None | "linear" | "constant"}`
+    (the CLI stores it; `mfmjax validate` and `report` compare it with their data's and say
+    where it differs: a model of detrended data on raw data gave fit -23434 %)."""
     require_x64("save_model")
     if not isinstance(model, Model):
         raise TypeError(f"save_model(): model must be a Model (e.g. from identify or "
@@ -102,6 +108,11 @@ def save_model(model: Model, path, *, covariance=None) -> None:
                              f"{len(names)}) matrix ordered as {list(names)} (got shape "
                              f"{cov.shape})")
         doc["covariance"] = {"names": list(names), "matrix": cov.tolist()}
+    if record is not None:
+        if not isinstance(record, dict) or set(record) - set(RECORD_KEYS):
+            raise ValueError(f"save_model(): record must be a dict with keys from {RECORD_KEYS} "
+                             f"(got {record!r})")
+        doc["record"] = {k: (float(v) if k == "dt" else v) for k, v in record.items()}
     atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
 
 

@@ -513,6 +513,9 @@ def test_audit_messages_name_the_problem(data, fitted, tmp_path):
     with pytest.raises(FileNotFoundError, match=rf"cannot write {missing}: the folder .* does "
                                                 r"not exist"):
         mfmjax.save_model(fitted, missing)
+    with pytest.raises(ValueError, match=r"save_model\(\): record must be a dict with keys "
+                                         r"from \('dt', 'detrend'\)"):
+        mfmjax.save_model(fitted, tmp_path / "m.json", record={"dt": 1.0, "units": "s"})
     ident = mfmjax.OnlineIdentifier(OnlineConfig(dt=1.0, n_inputs=1))
     with pytest.raises(ValueError, match=r"model\(\): no model has been accepted yet"):
         ident.model()

@@ -164,6 +164,30 @@ def test_validate_and_report_say_when_the_columns_differ_from_the_models(csv_fil
     assert "note: --intersample zoh,zoh is not used: the model's own (foh,zoh) are" in err
     assert main(["validate", *common, "--inputs", "u1,u2", "--delays", "0,0"]) == 0  # its own
     assert "not used" not in capsys.readouterr().err
+    # data read unlike the model's (saved with it: dt and --detrend): a model of detrended
+    # data validated on the raw record gave fit -23434 %, one of a time column in seconds on
+    # minutes -2 %, both with nothing said
+    assert json.loads(model_path.read_text())["record"] == {"dt": 0.01, "detrend": None}
+    assert main(["validate", *common, "--inputs", "u1,u2", "--detrend", "linear"]) == 0
+    assert ("note: the model was identified on data read without --detrend; these data are "
+            "read with --detrend linear: drop --detrend") in capsys.readouterr().err
+    scaled = tmp_path / "scaled.csv"
+    rows = csv_file.read_text().splitlines()
+    scaled.write_text("\n".join([rows[0]] + [f"{float(r.split(',', 1)[0]) * 100!r},"
+                                              f"{r.split(',', 1)[1]}" for r in rows[1:]]))
+    assert main(["report", str(model_path), str(scaled), "--output", "temp", "--inputs", "u1,u2",
+                 "--time", "t", "-o", str(tmp_path / "rep2")]) == 0
+    assert ("note: the model was identified on data sampled at dt=0.01; these data have dt=1"
+            in capsys.readouterr().err)
+    detrended = tmp_path / "detrended.json"
+    assert main(["identify", str(csv_file), *ARGS, "--detrend", "linear", "--save",
+                 str(detrended)]) == 0
+    capsys.readouterr()
+    assert main(["validate", str(detrended), str(csv_file), "--output", "temp", "--inputs",
+                 "u1,u2", "--time", "t"]) == 0
+    assert ("note: the model was identified on data read with --detrend linear (the model is "
+            "for deviations from those lines); these data are read as they are: give "
+            "--detrend linear as then") in capsys.readouterr().err
 
 
 def test_validate_and_report_use_the_validation_lines_observer(tmp_path, capsys):
