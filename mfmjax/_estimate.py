@@ -63,8 +63,8 @@ class Estimate(eqx.Module):
         lines = [self.model.summary(), f"method: MFM search -> {self.method}",
                  f"selection: {self.selection}"]
         if self.holdout:
-            lines.append("hold-out fit %: " + ", ".join(
-                f"{k} {v:.1f}" for k, v in self.holdout.items()))
+            lines.append("hold-out fit %: " + ", ".join(  # -1e25 % reads as "< -1000"
+                f"{k} {v:.1f}" if v >= -1000 else f"{k} < -1000" for k, v in self.holdout.items()))
         lines.append(f"{'parameter':<12}{'std error':>14}")
         lines += [f"{k:<12}{float(v):>14.3e}" for k, v in zip(self.names, self.std_errors)]
         lines += list(self.notes)
@@ -239,9 +239,15 @@ def estimate(
             continue
         if not o.converged:
             which = "" if single else f" (record {r})"
+            unstable = ("; the MFM winner or SRIVC's filter was unstable, so the plant itself "
+                        "may be: fits that simulate (SRIVC, output error) cannot follow a "
+                        "response that grows by orders of magnitude over the record; identify "
+                        "it on a shorter record (a few of its growth times) or in closed loop"
+                        if o.stabilised or "unstable_filter" in _reason(o) else "")
             warnings.warn(f"estimate(){which}: {o.method} did not converge ({_reason(o)}); the "
                           "estimate is its best iterate and its standard errors are not "
-                          "trustworthy: check the grid or raise max_iter", stacklevel=2)
+                          f"trustworthy: check the grid or raise max_iter{unstable}",
+                          stacklevel=2)
     return outs[0] if single else tuple(outs)
 
 
@@ -267,7 +273,7 @@ RESIDUAL_LAGS = 25  # lags of the residual tests (`residuals`), at most a quarte
 START_RATIO = 1.2  # SRIVC's from-rest residual variance over the observer-started one
 
 
-def residual_notes(records: list, outs: list, n_max: int) -> list:
+def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = False) -> list:
     """(notes, serious: the first note is warned) per record. First the residual tests of `residuals` (Box-Pierce
     whiteness, and independence from each input, 1 % level) of each returned model on its
     whole record, the state from the observer over the record (`residuals`' default), by the
@@ -280,14 +286,16 @@ def residual_notes(records: list, outs: list, n_max: int) -> list:
     `START_RATIO`: the record does not start at rest, and SRIVC's standard errors leave out
     that start-up transient (1.4-2.1x too small on records cut 2 s after an input switch,
     ratios 1.37-2.2 there against 1.002-1.007 from rest). Nothing for a flagged or unstable
-    model."""
+    model, nor where the returned stage did not converge (its summary already says so; the
+    `rehearsal` compiles the program whatever its stand-in's stages did)."""
     from ._analysis import residual_tests
 
     T = records[0].n_samples
     lags = min(RESIDUAL_LAGS, T // 4)
-    todo = [r for r, o in enumerate(outs)
-            if not ((int(o.model.status) | _search_flags(o.search)) & FLAGGED
-                    or unstable_note(o.model))]
+    todo = [r for r, o in enumerate(outs)  # not where the summary already says NOT ...
+            if (o.converged or rehearsal)
+            and not ((int(o.model.status) | _search_flags(o.search)) & FLAGGED
+                     or unstable_note(o.model))]
     out = [((), False)] * len(outs)
     if lags < 5 or not todo:
         return out
@@ -388,7 +396,7 @@ def _rehearsal(records: list, grid: dict, stages: dict, windows=None):
                     outs = _from_holdout([first], [HoldoutSearch(tuple(res for _ in folds),
                                                                  np.ones(len(res)), res, folds,
                                                                  est)], rehearsal=True, **stages)
-                residual_notes([first], outs, n_max)
+                residual_notes([first], outs, n_max, rehearsal=True)
             except Exception:  # noqa: BLE001 (speculative: the real stages compile what it missed)
                 pass
 

@@ -635,3 +635,18 @@ def test_estimate_says_when_its_record_does_not_start_at_rest():
     assert len(note) == 1, est.notes
     ratio = float(note[0].split("leaves ")[1].split("x")[0])
     assert ratio > START_RATIO
+
+
+def test_estimate_not_converging_on_a_fast_growing_plant_says_it_may_be_unstable():
+    """Poles +0.085 and -0.585 over 200 s (the response grows 1.4e7-fold): SRIVC's filter goes
+    unstable and nothing converges. The warning said only "check the grid or raise
+    max_iter"; it now says the plant itself may be unstable and what to do."""
+    plant = Model.from_coefficients([-0.05, 0.5, 1.0], [[2.0]], intersample=["zoh"])
+    clean = simulated_experiment(plant, dt=0.1, n_samples=2000, seed=7)
+    y = np.asarray(clean.y)
+    y = y + np.std(y) / 10.0 * np.random.default_rng(0).standard_normal(y.size)
+    sig = mfmjax.Signals(y, clean.u, dt=0.1, intersample="zoh", offset=False)
+    with pytest.warns(UserWarning, match=r"did not converge \(unstable_filter\).*the plant itself "
+                                         r"may be.*shorter record"):
+        est = mfmjax.estimate(sig, h=2.0, n=(2,), N=3, M=3, m=[[0]])
+    assert not est.converged and "NOT CONVERGED" in est.summary()
