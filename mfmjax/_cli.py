@@ -302,7 +302,7 @@ def _no_inputs_note(args) -> None:
     from ._signals import read_csv
 
     names = [c.strip() for c in args.names.split(",")] if args.names else None
-    unused = [c for c in read_csv(args.file, names) if c not in (args.output, args.time)]
+    unused = [c for c in read_csv(args.file, names, used=()) if c not in (args.output, args.time)]
     if unused:
         print(f"note: no --inputs: a model of {args.output} alone (its free response from the "
               f"observed initial state); the file's columns {', '.join(unused)} are not used "

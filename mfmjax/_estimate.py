@@ -64,7 +64,8 @@ class Estimate(eqx.Module):
                  f"selection: {self.selection}"]
         if self.holdout:
             lines.append("hold-out fit %: " + ", ".join(  # -1e25 % reads as "< -1000"
-                f"{k} {v:.1f}" if v >= -1000 else f"{k} < -1000" for k, v in self.holdout.items()))
+                f"{k} {v:.1f}" if v >= -1000 else f"{k} not usable" if v != v else f"{k} < -1000"
+                for k, v in self.holdout.items()))
         lines.append(f"{'parameter':<12}{'std error':>14}")
         lines += [f"{k:<12}{float(v):>14.3e}" for k, v in zip(self.names, self.std_errors)]
         lines += list(self.notes)
@@ -214,7 +215,7 @@ def estimate(
     edges = [] if delays is None else [
         [float(d) for d in grid_values(dk, f"delays[{k}]")] for k, dk in enumerate(delays)]
     doubtful = {}  # warned once per batch: {first record's text: records}
-    checked = residual_notes(records, outs, max(grid_values(n, "n")))
+    checked = residual_notes(records, outs, max(grid_values(n, "n")), whole=identify is None)
     for r, (o, (notes, serious)) in enumerate(zip(outs, checked)):
         texts = delay_edge_notes(o.model, edges)  # the best delay may lie beyond the grid
         warn = list(texts) + list(notes[:1] if serious else ())
@@ -273,7 +274,8 @@ RESIDUAL_LAGS = 25  # lags of the residual tests (`residuals`), at most a quarte
 START_RATIO = 1.2  # SRIVC's from-rest residual variance over the observer-started one
 
 
-def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = False) -> list:
+def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = False,
+                   whole: bool = True) -> list:
     """(notes, serious: the first note is warned) per record. First the residual tests of `residuals` (Box-Pierce
     whiteness, and independence from each input, 1 % level) of each returned model on its
     whole record, the state from the observer over the record (`residuals`' default), by the
@@ -285,7 +287,8 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
     residual variance (its simulation from rest) over the observer-started one above
     `START_RATIO`: the record does not start at rest, and SRIVC's standard errors leave out
     that start-up transient (1.4-2.1x too small on records cut 2 s after an input switch,
-    ratios 1.37-2.2 there against 1.002-1.007 from rest). Nothing for a flagged or unstable
+    ratios 1.37-2.2 there against 1.002-1.007 from rest; only where SRIVC was fitted on the
+    whole record, `whole`: not on `identify` windows). Nothing for a flagged or unstable
     model, nor where the returned stage did not converge (its summary already says so; the
     `rehearsal` compiles the program whatever its stand-in's stages did)."""
     from ._analysis import residual_tests
@@ -325,7 +328,7 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
                          "assume white noise and are then too small (see residuals(model, "
                          "signals))")
         fit = outs[r].srivc
-        if outs[r].method == "srivc" and fit is not None:
+        if whole and outs[r].method == "srivc" and fit is not None:  # fitted on the record
             ratio = float(fit.sigma2) / float(np.mean(e * e))
             if ratio > START_RATIO:
                 notes.append(f"SRIVC's simulation from rest leaves {ratio:.2f}x the residual "
@@ -857,6 +860,7 @@ def _shifted_back(out, ybar, ubar):
     if theta.shape == (len(out.names),):  # the fitted free parameters: their offset too
         theta[out.names.index("offset")] = float(back.offset)
         back = eqx.tree_at(lambda q: q.theta, back, jax.device_put(theta))
+        out = replace_fields(out, theta=jax.device_put(theta))  # the fit's own theta too
     # covariance of (.., b_k0, .., offset): d offset / d a_0 = ybar, d / d b_k0 = -ubar_k
     J = np.eye(len(out.names))
     row = out.names.index("offset")

@@ -109,8 +109,13 @@ def save_model(model: Model, path, *, covariance=None, record=None) -> None:
                              f"{cov.shape})")
         doc["covariance"] = {"names": list(names), "matrix": cov.tolist()}
     if record is not None:
-        if not isinstance(record, dict) or set(record) - set(RECORD_KEYS):
-            raise ValueError(f"save_model(): record must be a dict with keys from {RECORD_KEYS} "
+        dt = record.get("dt") if isinstance(record, dict) else None
+        if (not isinstance(record, dict) or set(record) - set(RECORD_KEYS)
+                or ("dt" in record and not (isinstance(dt, (int, float)) and not isinstance(
+                    dt, bool) and math.isfinite(dt) and dt > 0))
+                or record.get("detrend") not in (None, "linear", "constant")):
+            raise ValueError(f"save_model(): record must be a dict with keys from {RECORD_KEYS}: "
+                             "dt a finite step > 0, detrend None, 'linear' or 'constant' "
                              f"(got {record!r})")
         doc["record"] = {k: (float(v) if k == "dt" else v) for k, v in record.items()}
     atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())

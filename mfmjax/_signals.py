@@ -561,11 +561,15 @@ class Signals(eqx.Module):
             if time is None or dt is not None:
                 raise ValueError(f"{source}: resample= needs a time column (time=...) and no dt; "
                                  "it reads the record at its sample times")
-            _refuse_nonfinite(source, [(c, arrays[c]) for c in [output, *inputs]])
+            t_all = arrays[time]
+            kept = {c: np.isfinite(arrays[c]) & np.isfinite(t_all) for c in [output, *inputs]}
+            for c, keep in kept.items():  # a missing sample is dropped and interpolated across
+                if keep.sum() < 2:
+                    raise ValueError(f"{source}: column {c!r} has fewer than 2 finite samples")
             try:
                 t0, y_r, u_r, rules, _ = resample_arrays(
-                    "Signals.from_columns", arrays[time], arrays[output],
-                    {c: (arrays[time], arrays[c]) for c in inputs}, dt=resample,
+                    "Signals.from_columns", t_all[kept[output]], arrays[output][kept[output]],
+                    {c: (t_all[kept[c]], arrays[c][kept[c]]) for c in inputs}, dt=resample,
                     intersample=kwargs.pop("intersample", "foh"), output_name=output)
             except (ValueError, TypeError) as err:
                 raise type(err)(f"{source}: {err}") from None
@@ -591,7 +595,8 @@ class Signals(eqx.Module):
     def from_csv(cls, path, *, output: str, inputs: Sequence[str] = (), time=None, dt=None,
                  names: Sequence[str] | None = None, **kwargs) -> Signals:
         """Read a CSV file with a header row (or headerless, columns named by `names`)."""
-        columns = read_csv(path, names)
+        used = [output, *inputs] + ([time] if time is not None else [])
+        columns = read_csv(path, names, used=[str(c) for c in used])
         return cls.from_columns(columns, output=output, inputs=inputs, time=time, dt=dt,
                                 source=f"{path}", **kwargs)
 
@@ -600,13 +605,14 @@ class Signals(eqx.Module):
                        **kwargs) -> Signals:
         """Build from a pandas DataFrame (pandas is optional and only needed here).
 
-        `time` names a column or the index (its name). Date-times (datetime64, with or without
-        a time zone) and durations (timedelta64) are read as seconds since the first one, so
-        `dt`, `h` and the delays are in seconds; numbers are taken in their own unit."""
+        `time` names a column or the index (its name, or "index" for an unnamed one).
+        Date-times (datetime64, with or without a time zone) and durations (timedelta64) are
+        read as seconds since the first one, so `dt`, `h` and the delays are in seconds;
+        numbers are taken in their own unit."""
         cols = {str(c): c for c in df.columns}
-        if time is not None and str(time) not in cols and df.index.name is not None \
-                and str(df.index.name) == str(time):
-            df = df.reset_index()
+        if time is not None and str(time) not in cols and (
+                str(df.index.name) == str(time) or (df.index.name is None and time == "index")):
+            df = df.rename_axis(str(time)).reset_index()  # the index (time="index": unnamed)
             cols = {str(c): c for c in df.columns}
         wanted = {str(c) for c in [output, *inputs] + ([time] if time is not None else [])}
         columns = {name: (_dataframe_column(df[c], name) if name in wanted else None)
@@ -632,14 +638,15 @@ def _dataframe_column(series, name: str) -> np.ndarray:
 
 
 def _refuse_nonfinite(source: str, columns: list) -> None:
-    """Refuse the first (label, column) holding a NaN or inf, by its row."""
+    """Refuse the first (label, column) holding a NaN or inf, by its (0-based) row."""
     for label, arr in columns:
         finite = np.isfinite(arr)
         if not finite.all():
             raise ValueError(
                 f"{source}: column {label!r} has a NaN or inf sample at row "
-                f"{int(np.argmin(finite))}; remove or interpolate it before identification "
-                "(drop the row and resample: resample=DT, --resample DT)")
+                f"{int(np.argmin(finite))} (0-based); remove or interpolate it before "
+                "identification (with a time column, resample=DT or --resample DT drops missing "
+                "samples and interpolates across them)")
 
 
 FROZEN_ROWS = 20  # this many repeats of a row in every column used: a frozen logger
@@ -649,14 +656,18 @@ def _warn_frozen(source: str, arrays: dict, used: list, time) -> None:
     """Warn where a record's rows repeat in every column used for `FROZEN_ROWS` rows or more
     (after the first row: a rest at the start is common): a frozen logger or a historian's
     held value, which noisy plant data never do and which would be fitted as real."""
+    if len(used) < 2:  # an output alone (quantised, settled) repeats without a fault
+        return
     X = np.column_stack([arrays[c] for c in used])
     same = np.all(X[1:] == X[:-1], axis=1)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], same.astype(np.int8), [0]])))
     for a, b in zip(edges[::2], edges[1::2]):  # rows a..b equal row a
         if b - a >= FROZEN_ROWS and a > 0:
-            at = (lambda k: f"t={arrays[time][k]:g}") if time else (lambda k: f"row {k}")
+            at = ((lambda k: f"row {k} (t={arrays[time][k]:.10g})") if time
+                  else (lambda k: f"row {k}"))
             warnings.warn(
-                f"{source}: {b - a + 1} rows from {at(a)} to {at(b)} repeat the same values in "
+                f"{source}: {b - a + 1} rows from {at(a)} to {at(b)} (0-based) repeat the same "
+                "values in "
                 f"every column used ({', '.join(map(repr, used))}): a frozen logger or a held "
                 "value? They are fitted as real data. Drop those rows and resample "
                 "(resample=DT, --resample DT: the gap is interpolated, with a warning), or "
@@ -669,8 +680,11 @@ _COMMENT = ("{path}: line {line} starts with '#'; mfmjax reads no comment lines 
             "header: remove them")
 
 
-def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+def read_csv(path, names: Sequence[str] | None = None, *,
+             used: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     """Read a table of numbers into {name: float64 array}; clear errors on bad cells.
+    `used`: read only these columns (the others map to None, so a historian's text status
+    column not used does not stop the file).
 
     Comma-separated with a header row by default. With `names`, the file has no header and the
     columns get these names; fields may then also be separated by whitespace (DaISy .dat files).
@@ -698,7 +712,9 @@ def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         raise ValueError(f"{path}: the file is empty; expected a header row")
     if first_line.lstrip().startswith("#") and names is None:
         first_line = first_line.lstrip()[1:]  # numpy.savetxt's header: "# t,y,u"
-    if first_line.count(";") > first_line.count(","):  # names may hold commas: "T [degC, PV]"
+    probe = _first_line(rest)[0] if names is None else first_line  # a data line: names may
+    probe = probe or first_line  # hold ',' ("T [degC, PV]") or ';' ("T;PV")
+    if probe.count(";") > probe.count(","):
         raise ValueError(
             f"{path}: fields are separated by ';' (line 1: {first_line[:40]!r}); mfmjax reads "
             "comma-separated files with '.' as the decimal point: re-export the file as CSV, or "
@@ -708,9 +724,16 @@ def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     comma = "," in first_line
     tab = names is None and not comma and "\t" in first_line  # names may hold spaces
 
-    def split(line):
-        cells = (next(csv.reader([line])) if comma else line.split("\t") if tab
-                 else line.split())
+    def split(line, n=None):
+        if comma:
+            cells = next(csv.reader([line]))
+        elif tab:  # a trailing tab, or data separated by spaces under a tab header, read too
+            cells = line.split("\t")
+            if n is not None and len(cells) != n:
+                cells = (cells[:n] if len(cells) > n and not "".join(cells[n:]).strip()
+                         else line.split() if len(line.split()) == n else cells)
+        else:
+            cells = line.split()
         return [c.strip() for c in cells]
 
     if names is None:
@@ -730,20 +753,20 @@ def read_csv(path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     for lineno, line in enumerate(lines, start=first):
         if line.lstrip().startswith("#"):
             raise ValueError(_COMMENT.format(path=path, line=lineno))
-        row = split(line)
+        row = split(line, len(header))
         if len(row) != len(header):
             raise ValueError(
                 f"{path}: line {lineno} has {len(row)} fields but "
                 + (f"{len(header)} names were given (--names)" if names is not None
                    else f"the header has {len(header)} columns")
                 + "; every row needs one field per column"
-                + ("" if comma or tab else " (fields are split at commas, else at tabs, else "
-                   "at spaces)")
+                + ("" if comma else " (fields are split at commas, else at tabs, else at "
+                   "spaces)")
             )
         rows.append(row)
         linenos.append(lineno)
     return {name: _csv_column(path, name, [r[j] for r in rows], linenos, first)
-            for j, name in enumerate(header)}
+            if used is None or name in used else None for j, name in enumerate(header)}
 
 
 MISSING = ("", "nan", "NaN", "NAN", "#N/A", "N/A", "n/a", "NA", "#NA", "NULL", "null", "None")
@@ -765,24 +788,44 @@ def _csv_column(path, name: str, cells: list, linenos: list, first: int) -> np.n
     if not bad:
         return out
     i = bad[0]
-    if len(bad) == len(cells) - sum(c in MISSING for c in cells):  # no number in the column
+    text = len(bad) == len(cells) - sum(c in MISSING for c in cells)  # no number in the column
+    if text:
         stamps = np.full(len(cells), np.datetime64("NaT", "ns"))
         for j in bad:
-            try:
-                stamps[j] = np.datetime64(cells[j][:-1] if cells[j].endswith("Z") else cells[j],
-                                          "ns")
-            except ValueError:
+            stamp = _iso_stamp(cells[j])
+            if stamp is None:
                 break
+            stamps[j] = stamp
         else:
             return (stamps - stamps[bad[0]]) / np.timedelta64(1, "s")
         i = j if j != bad[0] else i  # the first cell that is not a date-time like the others
     cell = cells[i]
-    hint = ("a unit row under the header? remove it" if linenos[i] == first else
-            "missing values may be empty, NaN or #N/A; a time column may hold ISO 8601 "
-            "date-times (2024-03-05 08:00:00), read as seconds since the first; write the "
-            "decimal point as '.'")
+    if text and i == bad[0]:  # the whole column is text, not only a unit row
+        hint = ("the column holds text or date-times not in ISO 8601: convert them to "
+                "numbers or to ISO 8601 (2024-03-05 08:00:00); from_csv and the command line "
+                "read only the columns given as output, inputs and time")
+    elif linenos[i] == first and len(bad) == 1:
+        hint = "a unit row under the header? remove it"
+    else:
+        hint = ("missing values may be empty, NaN or #N/A; a time column may hold ISO 8601 "
+                "date-times (2024-03-05 08:00:00), read as seconds since the first; write the "
+                "decimal point as '.'")
     raise ValueError(f"{path}: line {linenos[i]} has a non-numeric value {cell[:20]!r} in "
                      f"column {name!r}; every row after the header must hold numbers ({hint})")
+
+
+def _iso_stamp(cell: str):
+    """An ISO 8601 date-time (a final Z or an offset such as +01:00: converted to UTC) as
+    datetime64[ns], or None (numpy's words 'now', 'today', 'NaT' are not date-times here)."""
+    if not cell[:4].isdigit():
+        return None
+    text = cell[:-1] if cell[-1] in "Zz" else cell
+    try:
+        with warnings.catch_warnings():  # an offset: numpy converts it, with a warning
+            warnings.simplefilter("ignore")
+            return np.datetime64(text, "ns")
+    except ValueError:
+        return None
 
 
 def _is_number(cell: str) -> bool:

@@ -516,6 +516,9 @@ def test_audit_messages_name_the_problem(data, fitted, tmp_path):
     with pytest.raises(ValueError, match=r"save_model\(\): record must be a dict with keys "
                                          r"from \('dt', 'detrend'\)"):
         mfmjax.save_model(fitted, tmp_path / "m.json", record={"dt": 1.0, "units": "s"})
+    for bad in ({"dt": None}, {"dt": -1.0}, {"detrend": "cubic"}):
+        with pytest.raises(ValueError, match=r"save_model\(\): record must be a dict"):
+            mfmjax.save_model(fitted, tmp_path / "m.json", record=bad)
     ident = mfmjax.OnlineIdentifier(OnlineConfig(dt=1.0, n_inputs=1))
     with pytest.raises(ValueError, match=r"model\(\): no model has been accepted yet"):
         ident.model()

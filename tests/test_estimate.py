@@ -44,6 +44,11 @@ def test_estimate_is_consistent_at_10_db(noisy):
     assert est.start.n == 2 and len(est.search) > 1  # the path is kept
     assert not any("Re >= 0" in note for note in est.notes)  # a stable estimate: no note
     assert not any("residuals" in note or "start at rest" in note for note in est.notes)
+    # absurd hold-out fits print as such (one printed -3.7e25 %), a NaN one as not usable
+    from mfmjax._pytree import replace_fields
+
+    odd = replace_fields(est, holdout={"mfm": -3.7e25, "srivc": float("nan"), "chosen": 61.04})
+    assert "hold-out fit %: mfm < -1000, srivc not usable, chosen 61.0" in odd.summary()
 
 
 def test_estimate_says_when_its_model_is_unstable():
@@ -577,6 +582,8 @@ def test_estimate_theta_is_its_free_parameters_at_the_record_levels():
     names, values = free_parameters(est.model)
     np.testing.assert_allclose(np.asarray(est.model.theta), values, rtol=1e-12, atol=0)
     assert names[-1] == "offset" and est.model.to_dict()["theta"][-1] == float(est.model.offset)
+    stage = est.output_error if est.method.endswith("output error") else est.srivc
+    np.testing.assert_array_equal(np.asarray(stage.theta), np.asarray(est.model.theta))
 
 
 def test_estimate_says_when_its_delay_is_at_the_grid_edge_or_its_residuals_fail():
@@ -614,8 +621,11 @@ def test_estimate_says_when_its_residuals_are_coloured():
     v *= float(np.std(np.asarray(clean.y))) / 10.0 / v.std()
     sig = mfmjax.Signals(np.asarray(clean.y) + v, clean.u, dt=DT, intersample="zoh",
                          offset=False)
-    est = mfmjax.estimate(sig, h=2.0, n=(2,), N=3, M=3, m=[[0]])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est = mfmjax.estimate(sig, h=2.0, n=(2,), N=3, M=3, m=[[0]])
     assert any("residuals are not white" in note for note in est.notes), est.notes
+    assert not any("residuals" in str(w.message) for w in caught)  # a note, not a warning
 
 
 def test_estimate_says_when_its_record_does_not_start_at_rest():

@@ -134,9 +134,11 @@ def test_from_dataframe_reads_date_times_in_seconds():
     y, u = _ok()
     stamps = pd.date_range("2024-03-05 08:00:00", periods=50, freq="500ms")
     df = pd.DataFrame({"time": stamps, "y": y, "u1": u[:, 0], "tag": ["ok"] * 50})
-    for frame in (df, df.set_index("time"), df.assign(time=stamps.tz_localize("Europe/Berlin")),
-                  df.assign(time=stamps - stamps[0])):
-        s = Signals.from_dataframe(frame, output="y", inputs=["u1"], time="time")
+    unnamed = df.set_index("time").rename_axis(None)
+    for frame, time in ((df, "time"), (df.set_index("time"), "time"), (unnamed, "index"),
+                        (df.assign(time=stamps.tz_localize("Europe/Berlin")), "time"),
+                        (df.assign(time=stamps - stamps[0]), "time")):
+        s = Signals.from_dataframe(frame, output="y", inputs=["u1"], time=time)
         assert s.dt == 0.5 and s.t0 == 0.0
         np.testing.assert_array_equal(np.asarray(s.y), y)
     with pytest.raises(ValueError, match="column 'tag' holds 'ok', not a number"):
@@ -165,8 +167,16 @@ def test_frozen_rows_are_warned(tmp_path):
         frozen = [w for w in caught if "repeat the same values" in str(w.message)]
         assert len(frozen) == int(warns), [str(w.message) for w in caught]
         if warns:
-            assert (f"{n_equal} rows from t=300 to t={299 + n_equal} repeat the same values in "
-                    "every column used ('temp', 'fuel')") in str(frozen[0].message)
+            assert (f"{n_equal} rows from row 300 (t=300) to row {299 + n_equal} "
+                    f"(t={299 + n_equal}) (0-based) repeat the same values in every column "
+                    "used ('temp', 'fuel')") in str(frozen[0].message)
+    # an output alone (K = 0: a quantised, settled response) repeats without a fault
+    yq = np.round(3 * np.sin(t / 50.0))
+    p = _write(tmp_path, "t,temp\n" + "".join(f"{a!r},{b!r}\n" for a, b in zip(t.tolist(),
+                                                                            yq.tolist())))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Signals.from_csv(p, output="temp", time="t")
 
 
 def test_gap_warning_names_the_column(tmp_path):
@@ -181,11 +191,17 @@ def test_gap_warning_names_the_column(tmp_path):
     assert "'fuel' has a gap" in gaps[1] and "--identify-window" in gaps[0]
 
 
-def test_nonfinite_sample_named_by_column_with_resample(tmp_path):
-    """With resample=, a NaN cell was reported as "y has a NaN or inf value at index (2,)"
-    (the resampler's own names); it is now named by its column and row, as without it."""
-    p = _write(tmp_path, "t,temp,fuel\n0,1,2\n1,2,3\n2,,4\n3,4,5\n")
-    for kw in ({}, {"resample": 1.0}):
-        with pytest.raises(ValueError, match=r"column 'temp' has a NaN or inf sample at row 2"):
-            Signals.from_csv(p, output="temp", inputs=["fuel"], time="t", **kw)
+def test_missing_sample_with_and_without_resample(tmp_path):
+    """A missing cell is refused by its column and row, with the way round it: resample=DT,
+    which drops missing samples and interpolates across them (with resample= it was refused
+    as "y has a NaN or inf value at index (2,)", and the advice to resample went round in a
+    loop)."""
+    p = _write(tmp_path, "t,temp,fuel,tag\n0,1,2,OK\n1,2,5,OK\n2,,4,OK\n3,4,#N/A,OK\n4,5,6,OK\n")
+    with pytest.raises(ValueError, match=r"column 'temp' has a NaN or inf sample at row 2 "
+                                         r"\(0-based\); .*resample=DT or --resample DT drops"):
+        Signals.from_csv(p, output="temp", inputs=["fuel"], time="t")
+    s = Signals.from_csv(p, output="temp", inputs=["fuel"], time="t", resample=1.0,
+                         intersample="foh")  # the unused text column 'tag' is not read
+    np.testing.assert_array_equal(np.asarray(s.y), [1, 2, 3, 4, 5])
+    np.testing.assert_array_equal(np.asarray(s.u)[:, 0], [2, 5, 4, 5, 6])
 
