@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -512,6 +513,25 @@ def test_csv_date_times_and_tabs(tmp_path, fast_path):
     with pytest.raises(ValueError, match=r"line 3 has a non-numeric value '05.03.2024 08:00:01' "
                                          r"in column 'time'.*ISO 8601"):
         _signals.read_csv(p)
+    # an offset and a lower-case z are UTC (no numpy warning escapes); numpy's words are no
+    # date-times; a whole column of other date-times or text is said to be one, not a unit row
+    p.write_bytes(b"time,y\n2024-03-05T09:00:00+01:00,1\n2024-03-05T08:00:02z,2\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(_signals.read_csv(p)["time"], [0.0, 2.0])
+    for cells in ("now,today", "05.03.2024 08:00:00,05.03.2024 08:00:01", "OK,OK"):
+        a, b = cells.split(",")
+        p.write_bytes(f"time,y\n{a},1\n{b},2\n".encode())
+        with pytest.raises(ValueError, match=r"line 2 .*the column holds text or date-times not "
+                                             r"in ISO 8601"):
+            _signals.read_csv(p)
+    # tab files: a trailing tab, data split by spaces under a tab header; ';' inside a
+    # comma file's names
+    for body in (b"t\ty\tu\n0\t1\t2\t\n1\t2\t3\t\n", b"t\ty\tu\n0 1 2\n1 2 3\n",
+                 b"t,T;PV;degC,u\n0,1,2\n1,2,3\n"):
+        p.write_bytes(body)
+        cols = _signals.read_csv(p)
+        np.testing.assert_array_equal(list(cols.values())[1], [1.0, 2.0])
 
 
 @pytest.mark.parametrize(
