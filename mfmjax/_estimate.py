@@ -199,10 +199,8 @@ def estimate(
                            + unstable_note(o.model)) for o, r in zip(outs, records)]
     unstable = [r for r, o in enumerate(outs) if unstable_note(o.model)]
     if unstable:  # in the notes and the summary, and said where the user looks first
-        which = "" if single else (f" ({len(unstable)} of {len(outs)} records: "
-                                   f"{unstable[:10]}{'...' if len(unstable) > 10 else ''})")
-        warnings.warn(f"estimate(){which}: {unstable_note(outs[unstable[0]].model)[0]}",
-                      stacklevel=2)
+        warnings.warn(f"estimate(){_which(unstable, len(outs), single)}: "
+                      f"{unstable_note(outs[unstable[0]].model)[0]}", stacklevel=2)
     for r, (o, rec) in enumerate(zip(outs, records)):
         dependent = dependent_inputs(rec, o.model.delays)  # under the model's own delays
         if dependent:  # the gains and their standard errors are meaningless
@@ -221,16 +219,14 @@ def estimate(
     checked = residual_notes(records, outs, n_top, whole=identify is None)
     if polish is None:  # not at rest: output error (it fits x0) where it converges
         outs = _from_rest_to_output_error(records, outs, checked, n_top)
-    for r, (o, (notes, serious)) in enumerate(zip(outs, checked)):
+    for r, (o, (notes, serious, _)) in enumerate(zip(outs, checked)):
         texts = delay_edge_notes(o.model, edges)  # the best delay may lie beyond the grid
         warn = list(texts) + list(notes[:1] if serious else ())
         outs[r] = replace_fields(o, notes=o.notes + texts + notes)
         if warn:
             doubtful.setdefault(warn[0], []).append(r)
     for text, rs in doubtful.items():
-        which = "" if single else (f" ({len(rs)} of {len(outs)} records: "
-                                   f"{rs[:10]}{'...' if len(rs) > 10 else ''}; the first's note)")
-        warnings.warn(f"estimate(){which}: {text}", stacklevel=2)
+        warnings.warn(f"estimate(){_which(rs, len(outs), single)}: {text}", stacklevel=2)
     for r, o in enumerate(outs):
         flags = (int(o.model.status) | _search_flags(o.search)) & FLAGGED
         if flags:  # every candidate was flagged, or the stage's model is: not a usable answer
@@ -257,6 +253,12 @@ def estimate(
     return outs[0] if single else tuple(outs)
 
 
+def _which(records: list, total: int, single: bool) -> str:
+    """' (k of R records: [...])' for a batch warning, '' for one record."""
+    return "" if single else (f" ({len(records)} of {total} records: {records[:10]}"
+                              f"{'...' if len(records) > 10 else ''})")
+
+
 def delay_edge_notes(model: Model, grid: list) -> tuple:
     """A note per input whose delay is the largest (or the smallest, above 0) value of a
     delay grid of two or more: the best delay may lie beyond the grid (a 5 s dead time
@@ -281,8 +283,9 @@ START_RATIO = 1.2  # SRIVC's from-rest residual variance over the observer-start
 
 def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = False,
                    whole: bool = True) -> list:
-    """(notes, serious: the first note is warned) per record. First the residual tests of `residuals` (Box-Pierce
-    whiteness, and independence from each input, 1 % level) of each returned model on its
+    """(notes, serious: the first note is warned, not at rest) per record. First the
+    residual tests of `residuals` (Box-Pierce whiteness, and independence from each input,
+    1 % level) of each returned model on its
     whole record, the state from the observer over the record (`residuals`' default), by the
     hold-out's padded observer program (`observe_candidate`, one for every order up to
     `n_max`; rehearsed with the stages). Residuals correlated with an input mean unmodelled
@@ -304,7 +307,7 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
             if (o.converged or rehearsal)
             and not ((int(o.model.status) | _search_flags(o.search)) & FLAGGED
                      or unstable_note(o.model))]
-    out = [((), False)] * len(outs)
+    out = [((), False, False)] * len(outs)
     if lags < 5 or not todo:
         return out
     with warnings.catch_warnings():
@@ -333,18 +336,15 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
                          "assume white noise and are then too small (see residuals(model, "
                          "signals))")
         fit = outs[r].srivc
-        if whole and outs[r].method == "srivc" and fit is not None:  # fitted on the record
-            ratio = float(fit.sigma2) / float(np.mean(e * e))
-            if ratio > START_RATIO:
-                notes.append(f"SRIVC's simulation from rest leaves {ratio:.2f}x the residual "
-                             f"variance of the simulation from the observed initial state: "
-                             f"{NOT_AT_REST}, and SRIVC's standard errors leave out that "
-                             "start-up transient (too small)")
-        out[r] = tuple(notes), bool(bad)
+        ratio = (float(fit.sigma2) / float(np.mean(e * e))  # SRIVC fitted on the record
+                 if whole and outs[r].method == "srivc" and fit is not None else 0.0)
+        if ratio > START_RATIO:
+            notes.append(f"SRIVC's simulation from rest leaves {ratio:.2f}x the residual "
+                         "variance of the simulation from the observed initial state: the "
+                         "record does not start at rest, and SRIVC's standard errors leave "
+                         "out that start-up transient (too small)")
+        out[r] = tuple(notes), bool(bad), ratio > START_RATIO
     return out
-
-
-NOT_AT_REST = "the record does not start at rest"  # in `residual_notes`' note
 
 
 def _from_rest_to_output_error(records: list, outs: list, checked: list, n_max: int) -> list:
@@ -353,8 +353,7 @@ def _from_rest_to_output_error(records: list, outs: list, checked: list, n_max: 
     it converges, and a note says which. On 30 records cut 2 s after an input switch, its
     standard errors were within 1.00-1.15x of the spread (SRIVC's 1.4-2.1x too small) and the
     spread itself 1.8-2.6x smaller than SRIVC's."""
-    redo = [r for r, (notes, _) in enumerate(checked)
-            if outs[r].method == "srivc" and any(NOT_AT_REST in note for note in notes)]
+    redo = [r for r, (_, _, not_at_rest) in enumerate(checked) if not_at_rest]
     if not redo:
         return outs
     with warnings.catch_warnings():  # a stage that did not converge is said below
@@ -373,7 +372,7 @@ def _from_rest_to_output_error(records: list, outs: list, checked: list, n_max: 
                 outs[r], model=oe.model.labelled(rec.output_name, rec.input_names),
                 output_error=oe, names=tuple(oe.names), std_errors=np.asarray(oe.std_errors),
                 covariance=np.asarray(oe.covariance), method="srivc + output error")
-        checked[r] = (checked[r][0] + (text,), checked[r][1])
+        checked[r] = (checked[r][0] + (text,), *checked[r][1:])
     return outs
 
 

@@ -667,9 +667,8 @@ def _warn_frozen(source: str, arrays: dict, used: list, time) -> None:
                   else (lambda k: f"row {k}"))
             warnings.warn(
                 f"{source}: {b - a + 1} rows from {at(a)} to {at(b)} (0-based) repeat the same "
-                "values in "
-                f"every column used ({', '.join(map(repr, used))}): a frozen logger or a held "
-                "value? They are fitted as real data. Drop those rows and resample "
+                f"values in every column used ({', '.join(map(repr, used))}): a frozen logger "
+                "or a held value? They are fitted as real data. Drop those rows and resample "
                 "(resample=DT, --resample DT: the gap is interpolated, with a warning), or "
                 "identify on one side of them (Signals.window, --identify-window)",
                 stacklevel=4)
@@ -774,8 +773,8 @@ MISSING = ("", "nan", "NaN", "NAN", "#N/A", "N/A", "n/a", "NA", "#NA", "NULL", "
 
 def _csv_column(path, name: str, cells: list, linenos: list, first: int) -> np.ndarray:
     """One column of the careful path as float64: a missing value (`MISSING`: an empty cell,
-    NaN, #N/A, NULL, ...) as NaN; ISO 8601 date-times ("2024-03-05 08:00:00", a final Z for
-    UTC) as seconds since the first; anything else refused with its line."""
+    NaN, #N/A, NULL, ...) as NaN; a column of ISO 8601 date-times (`_iso_stamp`) as seconds
+    since the first; anything else refused with its line and a hint."""
     out = np.full(len(cells), np.nan)
     bad = []
     for i, c in enumerate(cells):
@@ -788,28 +787,27 @@ def _csv_column(path, name: str, cells: list, linenos: list, first: int) -> np.n
     if not bad:
         return out
     i = bad[0]
-    text = len(bad) == len(cells) - sum(c in MISSING for c in cells)  # no number in the column
-    if text:
-        stamps = np.full(len(cells), np.datetime64("NaT", "ns"))
-        for j in bad:
-            stamp = _iso_stamp(cells[j])
-            if stamp is None:
-                break
-            stamps[j] = stamp
-        else:
-            return (stamps - stamps[bad[0]]) / np.timedelta64(1, "s")
-        i = j if j != bad[0] else i  # the first cell that is not a date-time like the others
-    cell = cells[i]
-    if text and i == bad[0]:  # the whole column is text, not only a unit row
-        hint = ("the column holds text or date-times not in ISO 8601: convert them to "
-                "numbers or to ISO 8601 (2024-03-05 08:00:00); from_csv and the command line "
-                "read only the columns given as output, inputs and time")
-    elif linenos[i] == first and len(bad) == 1:
+    hint = ("missing values may be empty, NaN or #N/A; a time column may hold ISO 8601 "
+            "date-times (2024-03-05 08:00:00), read as seconds since the first; write the "
+            "decimal point as '.'")
+    if len(bad) == len(cells) - sum(c in MISSING for c in cells):  # no number in the column
+        stamps = {j: _iso_stamp(cells[j]) for j in bad}
+        failed = [j for j in bad if stamps[j] is None]
+        if not failed:
+            out = np.full(len(cells), np.datetime64("NaT", "ns"))
+            out[bad] = [stamps[j] for j in bad]
+            return (out - out[bad[0]]) / np.timedelta64(1, "s")
+        if failed == bad:  # the whole column is text
+            hint = ("the column holds text or date-times not in ISO 8601: convert them to "
+                    "numbers or to ISO 8601 (2024-03-05 08:00:00); from_csv and the command "
+                    "line read only the columns given as output, inputs and time")
+        elif failed == [bad[0]] and linenos[bad[0]] == first:
+            hint = "a unit row under the header? remove it"
+        else:  # the first cell that is not a date-time like the others
+            i = failed[0]
+    elif bad == [i] and linenos[i] == first:
         hint = "a unit row under the header? remove it"
-    else:
-        hint = ("missing values may be empty, NaN or #N/A; a time column may hold ISO 8601 "
-                "date-times (2024-03-05 08:00:00), read as seconds since the first; write the "
-                "decimal point as '.'")
+    cell = cells[i]
     raise ValueError(f"{path}: line {linenos[i]} has a non-numeric value {cell[:20]!r} in "
                      f"column {name!r}; every row after the header must hold numbers ({hint})")
 
