@@ -525,6 +525,9 @@ def test_csv_date_times_and_tabs(tmp_path, fast_path):
         with pytest.raises(ValueError, match=r"line 2 .*the column holds text or date-times not "
                                              r"in ISO 8601"):
             _signals.read_csv(p)
+    p.write_bytes(b"time,y\ns,degC\n2024-03-05 08:00:00,1\n2024-03-05 08:00:01,2\n")
+    with pytest.raises(ValueError, match=r"line 2 .*'s' in column 'time'.*a unit row"):
+        _signals.read_csv(p)  # a unit row above a date-time column is one, not "text"
     # tab files: a trailing tab, data split by spaces under a tab header; ';' inside a
     # comma file's names
     for body in (b"t\ty\tu\n0\t1\t2\t\n1\t2\t3\t\n", b"t\ty\tu\n0 1 2\n1 2 3\n",
