@@ -33,7 +33,7 @@ from ._modulating import ModulatingFunction, derivative_order, phi_scaled
 
 RULES = ("zoh", "foh", "cubic")
 _GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(12)
-EDGE = 1e-9  # tolerance (in samples) on ceil((tau + h)/dt) against rounding
+EDGE = 1e-9  # tolerance (in samples) on ceil((tau + h)/dt) and whole-sample delays against rounding
 
 
 def support_samples(span, dt: float):
@@ -268,10 +268,18 @@ def shift_samples(x, lag, rows=None):
 
 
 def split_delay(delay, dt: float):
-    """tau = (d + f) dt with integer d >= 0 and 0 <= f < 1 (traced-friendly)."""
+    """tau = (d + f) dt with integer d >= 0 and 0 <= f < 1 (traced-friendly). A delay within
+    `EDGE` samples of a whole number of samples is that number, f exactly 0 (its derivative
+    kept): tau / dt of a delay typed in decimals rounds to either side of the integer
+    (22 * 0.37 / 0.37 = 22.000000000000004), and for a zoh input the held value read at
+    t_j - tau changes sample at f = 0 (`delayed_samples`)."""
     steps = jnp.asarray(delay) / dt
-    d = jnp.floor(steps + 1e-12)
-    return d.astype(jnp.int32), jnp.clip(steps - d, 0.0, 1.0)
+    whole = jnp.round(steps)
+    snap = jnp.abs(steps - whole) <= EDGE
+    d = jnp.where(snap, whole, jnp.floor(steps))
+    f = steps - d
+    f = jnp.where(snap, f - jax.lax.stop_gradient(f), jnp.clip(f, 0.0, 1.0))
+    return d.astype(jnp.int32), f
 
 
 def delayed_samples(x, delay, dt: float, mode: str, rows=None):

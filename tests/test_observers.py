@@ -109,6 +109,27 @@ def test_simulate_fractional_delay_against_fine_grid():
     assert np.max(np.abs(y - ref)) <= 1e-9 * np.max(np.abs(ref))
 
 
+def test_whole_sample_delay_typed_in_decimals_is_whole_samples():
+    """A delay of 22 samples typed as 22 * 0.37 (tau / dt = 22.000000000000004): the direct
+    term of a zoh input (m_k = n) reads u[j - 22], as at tau / dt = 21.99999999999998 and as
+    the undelayed response shifted by 22 samples (it read u[j - 23]: an error of the step's
+    size at the step, status ok). Both are the same exact discretisation: rounding, 1e-12."""
+    dt = 0.37
+    u = np.zeros(120)
+    u[50:] = 1.0
+
+    def sim(delays):
+        model = Model.from_coefficients([1.0, 1.0], [[0.0, 1.0]], delays=delays,
+                                        intersample=["zoh"])
+        return np.asarray(mfmjax.simulate(model, u, dt=dt))
+
+    undelayed = sim(None)
+    truth = np.concatenate([np.zeros(22), undelayed[:-22]])
+    assert truth[72] == 1.0  # the step reaches the output through D = 1 at sample 50 + 22
+    for tau in (22 * dt, 22 * dt * (1 - 1e-15)):
+        np.testing.assert_allclose(sim([tau]), truth, rtol=0, atol=1e-12, err_msg=repr(tau / dt))
+
+
 def test_state_space_and_exports():
     model = Model.from_coefficients([2.0, 3.0, 1.5, 1.0], [[1.0, 0.5, 0.2, 0.3], [0.7]])
     ss = mfmjax.state_space(model)

@@ -155,3 +155,22 @@ def test_window_bucket_keeps_one_bucket_for_a_share_across_a_record_bucket():
             assert window_bucket(T, T) == record_bucket(T)
             for length in (8, 100, T // 2, T - 1):
                 assert length <= window_bucket(length, T) <= record_bucket(T)
+
+
+def test_split_delay_takes_a_whole_number_of_samples_typed_in_decimals_as_whole():
+    """tau = k dt computed in decimals (k * 0.37 / 0.37 rounds to either side of k) is k
+    samples and f = 0 exactly (a zoh input's held value changes sample at f = 0); a delay a
+    fraction off the grid keeps its fraction; df/dtau = 1/dt on and off the grid (jit, grad)."""
+    from mfmjax._quadrature import split_delay
+
+    for dt in (0.01, 0.1, 0.3, 0.37, 3.3):
+        k = np.arange(0, 201)
+        d, f = jax.jit(split_delay, static_argnums=1)(jnp.asarray(k * dt), dt)
+        np.testing.assert_array_equal(np.asarray(d), k)
+        np.testing.assert_array_equal(np.asarray(f), 0.0)
+        d, f = split_delay(jnp.asarray((k + 0.25) * dt), dt)
+        np.testing.assert_array_equal(np.asarray(d), k)
+        np.testing.assert_allclose(np.asarray(f), 0.25, rtol=0, atol=1e-12)  # k dt / dt: 1e-14
+    for tau in (22 * 0.37, 22.25 * 0.37):
+        slope = jax.grad(lambda t: split_delay(t, 0.37)[1])(tau)
+        np.testing.assert_allclose(float(slope), 1 / 0.37, rtol=1e-15)
