@@ -434,7 +434,8 @@ def _print_report(rep: dict) -> None:
     delays = ",".join(f"{d:.4g}" for d in s["delays"]) if s["delays"] else "-"
     print(f"\nrefined settings (BFGS on E: {rep['refine_result']}, {rep['refine_steps']} steps): "
           f"N={s['N']:.4g} M={s['M']:.4g} h={s['h']:.5g} delays={delays}")
-    print(f"E (eq. 17): MFM {rep['E_mfm']:.6g} -> refined settings {rep['E_refined']:.6g} -> "
+    print(f"E (eq. 17) on the data fitted, the state observed over all of them: MFM "
+          f"{rep['E_mfm']:.6g} -> refined settings {rep['E_refined']:.6g} -> "
           f"output error {rep['E_output_error']:.6g} ({rep['output_error_result']})")
     if not rep["output_error_converged"]:
         print(f"WARNING: output error NOT CONVERGED ({rep['output_error_result']}); the parameters "
@@ -806,23 +807,26 @@ def _cmd_search(args):
         kwargs.pop("score")
         kwargs.pop("validate", None)
         started = time.perf_counter()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with warnings.catch_warnings(record=True) as caught:  # estimate's own warnings
+            warnings.simplefilter("always")
             est = mfmjax.estimate(sig, identify=ident, **kwargs, **(
                 {} if args.holdout is None else {"holdout": args.holdout}))
         estimate_s = time.perf_counter() - started
+        for text in dict.fromkeys(str(w.message) for w in caught):  # each once, one line
+            _one_line_warning(text, UserWarning, "", 0)
         result = est.search
         report = {"model": est.model, "method": est.method, "converged": est.converged,
                   "srivc_status": est.srivc.describe() if est.srivc is not None else "not run",
                   "selection": est.selection, "summary": est.summary(),
+                  "n": est.model.n, "m": list(est.model.m), "notes": list(est.notes),
                   "parameters": {k: {"value": float(v), "std_error": float(e)} for k, v, e in
                                  zip(est.names, _free_values(est.model), est.std_errors)},
                   "covariance": est.covariance}
     else:
         result = mfmjax.search(sig, progress=_Progress("search"), identify=ident, **kwargs)
-    if args.refine:
+    if args.refine:  # on the data the search fitted (its identification window)
         best = result.best()
-        sig_best = _with_delays(sig, best.delays)
+        sig_best = _with_delays(sig if ident is None else sig.window(*ident), best.delays)
         report = _refine_report(sig_best, best, bool(grid_delays))
     cov = report.pop("covariance", None) if report else None  # saved for report's bands
     if args.save:

@@ -32,7 +32,7 @@ from ._padded import observe_candidate, padded_model
 from ._pytree import replace_fields
 from ._quadrature import window_bucket
 from ._search import SearchResult, plan_search, run_plan
-from ._search._grid import CHUNK_SETTINGS, grid_values, structures
+from ._search._grid import CHUNK_SETTINGS, delay_edge_notes, grid_values, structures
 from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
 from ._signals import Signals, dependent_inputs, offset_undecided, output_start
 from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc, srivc_many
@@ -220,7 +220,7 @@ def estimate(
     if polish is None:  # not at rest: output error (it fits x0) where it converges
         outs = _from_rest_to_output_error(records, outs, checked, n_top)
     for r, (o, (notes, serious, _)) in enumerate(zip(outs, checked)):
-        texts = delay_edge_notes(o.model, edges)  # the best delay may lie beyond the grid
+        texts = delay_edge_notes(o.model.delays, o.model.input_names, edges)
         warn = list(texts) + list(notes[:1] if serious else ())
         outs[r] = replace_fields(o, notes=o.notes + texts + notes)
         if warn:
@@ -257,22 +257,6 @@ def _which(records: list, total: int, single: bool) -> str:
     """' (k of R records: [...])' for a batch warning, '' for one record."""
     return "" if single else (f" ({len(records)} of {total} records: {records[:10]}"
                               f"{'...' if len(records) > 10 else ''})")
-
-
-def delay_edge_notes(model: Model, grid: list) -> tuple:
-    """A note per input whose delay is the largest (or the smallest, above 0) value of a
-    delay grid of two or more: the best delay may lie beyond the grid (a 5 s dead time
-    searched on (0, 1) s returned 1 s, a DC gain 11 standard errors off, status ok)."""
-    out = []
-    for k, values in enumerate(grid):
-        d, lo, hi = float(np.asarray(model.delays)[k]), min(values), max(values)
-        side = "largest" if d == hi else "smallest" if d == lo and lo > 0 else None
-        if hi > lo and side:
-            name = model.input_names[k] if model.input_names else f"u{k + 1}"
-            out.append(f"the delay of {name!r} ({d:g}) is the {side} of its grid "
-                       f"({lo:g}..{hi:g}): the best delay may lie beyond it, and the model "
-                       "and its standard errors are then wrong; widen delays= to check")
-    return tuple(out)
 
 
 RESIDUAL_LAGS = 25  # lags of the residual tests (`residuals`), at most a quarter of the record

@@ -90,7 +90,12 @@ class Model(eqx.Module):
                 "Model.from_coefficients(): a_n (the last entry of a) must be nonzero; "
                 "drop trailing zeros to lower the order"
             )
-        bs = [np.atleast_1d(np.asarray(bk, dtype=np.float64)) for bk in b]
+        if any(np.ndim(bk) != 1 for bk in b):  # a flat [1.0, 0.5] read as two inputs
+            raise ValueError(
+                "Model.from_coefficients(): b must list each input's coefficients b_k0..b_km_k "
+                f"as a sequence (got {b!r}); for one input write b=[[b_0, b_1, ...]], for two "
+                "inputs of order 0 b=[[b_10], [b_20]]")
+        bs = [np.asarray(bk, dtype=np.float64) for bk in b]
         for k, bk in enumerate(bs):
             if not np.all(np.isfinite(bk)):
                 raise ValueError(f"Model.from_coefficients(): b[{k}] contains NaN or inf")
@@ -104,6 +109,9 @@ class Model(eqx.Module):
             raise ValueError(
                 f"Model.from_coefficients(): delays needs {K} finite values >= 0 (got {delays})"
             )
+        if input_names is not None and len(input_names) != K:
+            raise ValueError(f"Model.from_coefficients(): input_names needs one name per input of "
+                             f"b ({K}; got {list(input_names)})")
         intersample = tuple(intersample) if intersample is not None else ("foh",) * K
         if len(intersample) != K or any(s not in ("zoh", "foh") for s in intersample):
             raise ValueError(

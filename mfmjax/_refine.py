@@ -243,6 +243,12 @@ def refine(
     h0, N0, M0 = float(start.mf.h), float(start.mf.N), float(start.mf.M)
     d0 = np.asarray(start.delays, dtype=np.float64).reshape(K)
     x0 = {"h": h0, "N": N0, "M": M0, "delays": d0}
+    for key in ("N", "M"):  # eq. 5: an MF of exponent below n has too few derivatives
+        if key in vary and float(box[key][0]) < start.structure.n:
+            raise ValueError(f"refine(): bounds[{key!r}] must start at n={start.structure.n} or "
+                             f"above (got {float(box[key][0]):g}): the modulating function "
+                             f"needs {key} >= n; give bounds={{{key!r}: "
+                             f"({start.structure.n}, {float(box[key][1]):g})}}")
     for key in vary:
         lo, hi = box[key]
         if np.any(np.asarray(lo) >= np.asarray(hi)) or np.any(x0[key] < lo) or np.any(

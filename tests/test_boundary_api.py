@@ -51,6 +51,21 @@ def test_signals_refuses(kw, err, match):
         Signals(**kw)
 
 
+@pytest.mark.parametrize("b,names,match", [
+    # a flat b was read as that many inputs of order 0 (a 2-input model from [1.0, 0.5])
+    ([1.0, 0.5], None, r"b must list each input's coefficients .* \(got \[1.0, 0.5\]\); for one "
+                       r"input write b=\[\[b_0, b_1, ...\]\]"),
+    (np.array([1.0, 0.5]), None, r"b must list each input's coefficients"),
+    ([[1.0], 2.0], None, r"b must list each input's coefficients"),
+    # names of another length were accepted, and failed later inside python-control
+    ([[1.0, 0.5]], ["q", "p"], r"input_names needs one name per input of b \(1; got \['q', 'p'\]\)"),
+])
+def test_model_from_coefficients_refuses(b, names, match):
+    with pytest.raises(ValueError, match=r"Model.from_coefficients\(\): " + match):
+        mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], b, input_names=names)
+    assert mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], np.array([[1.0, 0.5]])).m == (1,)
+
+
 @pytest.mark.parametrize("args,err,match", [
     ((2.5,), ValueError, r"Structure\(\): n must be an integer \(got n=2.5\)"),
     ((NAN,), ValueError, r"n must be a finite number \(got n=nan\)"),

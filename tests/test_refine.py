@@ -108,6 +108,10 @@ def test_refine_failure_returns_start(noisy):
         mfmjax.refine(sig, start, vary=("h",), bounds={"h": (10.0, 100.0)})
     with pytest.raises(ValueError, match="vary must name"):
         mfmjax.refine(sig, start, vary=("q",))
+    # a box that lets N below n: refused before any step (it ran to N = 1.86, and the final
+    # identify then blamed N); the start itself lies inside it
+    with pytest.raises(ValueError, match=r"bounds\['N'\] must start at n=2 .* \(got 0.5\)"):
+        mfmjax.refine(sig, start, vary=("h", "N"), bounds={"N": (0.5, 12)})
 
 
 def test_output_error_removes_bias_and_reports_errors(noisy):

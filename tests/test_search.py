@@ -111,6 +111,35 @@ def test_best_by_E_has_true_orders(clean):
         assert r.row(0)["n"] == 3
 
 
+def test_search_warns_when_its_best_cannot_be_trusted(noisy):
+    """The grid of `test_every_candidate_equals_identify` (its program) on (i) the plant with a
+    0.1 s delay on input 2, searched on (0, 0.05): the best delay is the grid's largest, said
+    by name (the best delay may lie beyond it); (ii) a constant input 2: every candidate is
+    flagged no_excitation, said once (best() returns a flagged model); (iii) the record
+    itself: neither."""
+    from mfmjax.datasets import third_order_two_input
+
+    grid = dict(n=(1, 3), N=(3,), M=(3, 4), h=(1.5,), m=[(0, 1, 3), (0,)],
+                delays=[(0.0,), (0.0, 0.05)])
+    truth = third_order_two_input()
+    late = simulated_experiment(mfmjax.Model.from_coefficients(
+        truth.a, truth.b, intersample=("foh", "zoh"), delays=[0.0, 0.1]), dt=0.01,
+        n_samples=1500, x0=[0.1, 0.2, 0.3], noise_std=0.01, seed=4)
+    flat = Signals(noisy.y, np.column_stack([noisy.u[:, 0], np.ones(1500)]), dt=0.01,
+                   intersample=("foh", "zoh"))
+    for sig, want in ((late, "best candidate: the delay of 'u2' (0.05) is the largest of its "
+                              "grid (0..0.05)"),
+                      (flat, "every one of the 20 candidates is flagged (the best: "
+                             "no_excitation)"),
+                      (noisy, None)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = mfmjax.search(sig, **grid)
+        said = [str(w.message) for w in caught if "search()" in str(w.message)]
+        assert len(said) == (want is not None) and (want is None or want in said[0]), said
+        assert (int(res.best().status) != 0) == (sig is flat)
+
+
 def test_search_validates_apart_bitwise_and_a_new_grid_compiles_its_solves_only(noisy):
     """`search` simulates its candidates (E, eq. 17) in a program of its own
     (`plan_search(apart=True)`, `validate_blocks`): every column equals, bitwise and in dtype,

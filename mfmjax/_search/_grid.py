@@ -28,6 +28,23 @@ from .._signals import Signals
 SCORES = ("E", "J", "fit", "aic", "bic")
 
 
+def delay_edge_notes(delays, input_names, grid: list) -> tuple:
+    """A note per input whose delay is the largest (or the smallest, above 0) value of a
+    delay grid of two or more (`grid`: per input, the values tried): the best delay may lie
+    beyond the grid (a 5 s dead time searched on (0, 1) s returned 1 s, a DC gain 11 standard
+    errors off, status ok)."""
+    out = []
+    for k, values in enumerate(grid):
+        d, lo, hi = float(np.asarray(delays)[k]), min(values), max(values)
+        side = "largest" if d == hi else "smallest" if d == lo and lo > 0 else None
+        if hi > lo and side:
+            name = input_names[k] if input_names else f"u{k + 1}"
+            out.append(f"the delay of {name!r} ({d:g}) is the {side} of its grid "
+                       f"({lo:g}..{hi:g}): the best delay may lie beyond it, and the model "
+                       "and its standard errors are then wrong; widen delays= to check")
+    return tuple(out)
+
+
 # candidates per vmapped batch of the validation simulations (lax.map): each holds its
 # candidates' (window, states) drive; 32 against 64: warm 0.63-0.64 s against 0.90-0.92 s on
 # 1728 E-scored candidates (T = 6000), 0.25-0.26 s against 0.31-0.33 s on the on-line grid's

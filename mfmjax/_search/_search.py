@@ -8,9 +8,9 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from .._signals import Signals, dependent_candidates
-from .._status import Status
+from .._status import Status, describe
 from ._engine import run_plan
-from ._grid import CHUNK_SETTINGS, plan_search
+from ._grid import CHUNK_SETTINGS, delay_edge_notes, grid_values, plan_search
 from ._result import SearchResult
 
 
@@ -71,6 +71,7 @@ def search(
                  chunk_size=chunk_size, simulate=simulate, identify=identify, split=True,
                  apart=True)
     res = run_plan(plan, signals, progress, once=True)
+    _doubtful_best(res, delays)
     if not np.any(res.columns["status"] & Status.ILL_CONDITIONED):  # `collect` checked them
         return res
     rows, dependent = dependent_candidates(signals, res.columns["delays"])  # their names
@@ -80,3 +81,20 @@ def search(
                       f"{len(rows)} candidates: their gains are meaningless and they are "
                       "flagged ill_conditioned; drop all but one of them", stacklevel=2)
     return res
+
+
+def _doubtful_best(res: SearchResult, delays) -> None:
+    """Warn when the best candidate cannot be trusted as it stands: every candidate is flagged
+    (`best()` then returns a flagged model), or its delay is at an end of its grid."""
+    status = res.columns["status"]
+    if not len(res):
+        return
+    if np.all(status != 0):
+        best = describe(int(status[res.rank[0]]))
+        warnings.warn(f"search(): every one of the {len(res)} candidates is flagged (the best: "
+                      f"{best}); best() returns a flagged model: see the status column and "
+                      "Status", stacklevel=3)
+    elif delays is not None:
+        grid = [[float(d) for d in grid_values(dk, f"delays[{k}]")] for k, dk in enumerate(delays)]
+        for text in delay_edge_notes(res.row(0)["delays"], res.input_names, grid):
+            warnings.warn(f"search(), best candidate: {text}", stacklevel=3)
