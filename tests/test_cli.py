@@ -422,6 +422,25 @@ def test_identify_and_search_refine(csv_file, capsys):
     assert set(ref["parameters"]) == {"a_0", "a_1", "a_2", "b_10", "b_11", "b_20"}
     for p in ref["parameters"].values():
         assert p["std_error"] >= 0 and np.isfinite(p["value"])
+    # search refines on the data it fitted: with --identify-window, that window (refine and
+    # output error ran on the whole record, --validate-window's data included, which the
+    # validation line then called held back); the refined E_mfm is the winner's E there
+    import mfmjax
+
+    assert main(["search", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
+                 "--intersample", "foh,zoh", "--n", "3", "--m", "1;0", "--N", "4", "--M", "5",
+                 "--h", "2.0", "--identify-window", "0,12", "--validate-window", "12.5,19.99",
+                 "--refine", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["validation"]["overlaps_identification"] is False
+    assert set(out["refined"]["parameters"]) == {"a_0", "a_1", "a_2", "b_10", "b_11", "b_20"}
+    row = out["ranked"][0]
+    best = mfmjax.Model.from_coefficients(row["a"], row["b"], intersample=("foh", "zoh"))
+    sig = mfmjax.Signals.from_csv(csv_file, output="temp", inputs=["u1", "u2"], time="t",
+                                  intersample=("foh", "zoh"))
+    on_window = float(mfmjax.observe(best, sig.window(0.0, 12.0)).E)
+    assert out["refined"]["E_mfm"] == pytest.approx(on_window, rel=1e-9)
+    assert abs(float(mfmjax.observe(best, sig).E) - on_window) > 1e-3 * on_window
     assert main(["search", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
                  "--intersample", "foh,zoh", "--n", "3", "--m", "1;0", "--N", "4", "--M", "5",
                  "--h", "2.0", "--refine"]) == 0
