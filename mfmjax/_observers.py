@@ -14,6 +14,9 @@ $M_0$ is equilibrated before it is solved, and its conditioning flags unobservab
 
 from __future__ import annotations
 
+import math
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -25,7 +28,7 @@ from ._jit import jit
 from ._linalg import conditioning_eigvals, small_matmul, solve
 from ._model import Model, simulation_form
 from ._pytree import replace_fields
-from ._quadrature import edge_padded, gregory_weights, record_bucket
+from ._quadrature import EDGE, edge_padded, gregory_weights, record_bucket
 from ._signals import Signals
 from ._simulate import forced_response
 from ._status import Status
@@ -223,6 +226,7 @@ def observation(model: Model, signals: Signals, window=None, *,
         obs = _observe(simulation_form(model), signals.y, signals.u, signals.dt,
                        jnp.asarray(start, dtype=jnp.int32), length, ob)
         return obs
+    _history_warning(model, signals, start)
     y, u, bound = padded_window(signals, start, length)
     # one program per order n (`simulation_form`), whatever the numerator orders
     obs = _observe(simulation_form(model), y, u, signals.dt, np.int32(start), bound,
@@ -235,6 +239,29 @@ def observation(model: Model, signals: Signals, window=None, *,
 
 
 _observe = jit(observe_window)
+
+
+def _history_warning(model: Model, signals: Signals, start: int) -> None:
+    """Warn when a delayed input's response in the window reaches before the record (the
+    window starts less than its delay after the first sample) while that input varies at the
+    record's start: the forced response takes the input before the record as held at its
+    first value (an exact model on noise-free data cut from a longer record: fit 45 %)."""
+    if _b.is_traced(model.delays):
+        return
+    dt, u = signals.host_dt, np.asarray(signals.u)
+    for k, tau in enumerate(np.asarray(model.delays, dtype=np.float64).reshape(-1)):
+        need = math.ceil(tau / dt - EDGE)  # samples of the input's history the delay reaches
+        if start < need and np.ptp(u[: need + 1, k]) > 0:
+            name = model.input_names[k] if model.input_names else f"u{k + 1}"
+            warnings.warn(
+                f"observe(): input {name!r} is delayed by {tau:g} and the window starts "
+                f"{start * dt:g} after the record's first sample: the response in its first "
+                f"{(need - start) * dt:g} uses {name!r} from before the record, taken as held at "
+                f"its first value ({u[0, k]:g}), while the record's {name!r} varies from its "
+                f"start; start the window at {signals.t0 + tau:g} or later (window=(t_start, "
+                "t_end)), unless the input was steady at that value before the record",
+                stacklevel=4)
+            return
 
 
 def padded_window(signals: Signals, start: int, length: int, bound: int | None = None):

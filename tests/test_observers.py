@@ -1,3 +1,5 @@
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -128,6 +130,35 @@ def test_whole_sample_delay_typed_in_decimals_is_whole_samples():
     assert truth[72] == 1.0  # the step reaches the output through D = 1 at sample 50 + 22
     for tau in (22 * dt, 22 * dt * (1 - 1e-15)):
         np.testing.assert_allclose(sim([tau]), truth, rtol=0, atol=1e-12, err_msg=repr(tau / dt))
+
+
+def test_observe_says_when_a_delayed_input_reaches_before_the_record():
+    """A window starting less than the delay after the record's first sample takes the input
+    before the record as held at u[0]: exact where the plant was steady there (an input
+    constant over its first delay: no warning), wrong on a record cut from a longer one (an
+    exact model on noise-free data: fit 45 % in an audit), which warns with the input's name
+    and the window start that avoids it; the same window inside the longer record is exact."""
+    dt, T, tau = 0.01, 700, 0.3  # 30 samples of delay
+    u = np.sin(2.1 * np.arange(T) * dt) + np.sign(np.sin(0.9 * np.arange(T) * dt))
+    u[:50] = 0.0  # steady before and at the record's start
+    model = Model.from_coefficients([0.24, 1.1, 1.0], [[0.5]], delays=[tau], input_names=["q"])
+    y = np.asarray(mfmjax.simulate(model, u, dt=dt))
+    full, cut = Signals(y, u, dt=dt, input_names=["q"]), Signals(y[200:], u[200:], dt=dt,
+                                                                 input_names=["q"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        whole = mfmjax.observe(model, full)  # u steady over its first 30 samples
+        inside = mfmjax.observe(model, full, (2.0, 6.99))
+    with pytest.warns(UserWarning, match=r"observe\(\): input 'q' is delayed by 0.3 and the "
+                      r"window starts 0 after .* start the window at 0.3 or later"):
+        wrong = mfmjax.observe(model, cut)
+    # noise-free, exact model: E at rounding level where the history is known (1e-20 of the
+    # output energy), far above it where it is not
+    energy = float(np.sum(y**2) * dt)
+    assert float(whole.E) < 1e-20 * energy and float(inside.E) < 1e-20 * energy
+    assert float(wrong.E) > 1e-9 * energy  # 1.4e-7 here
+    np.testing.assert_allclose(np.asarray(mfmjax.observe(model, cut, (0.3, 4.99)).y_sim),
+                               np.asarray(inside.y_sim)[30:], rtol=0, atol=1e-9 * np.abs(y).max())
 
 
 def test_state_space_and_exports():
