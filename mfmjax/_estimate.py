@@ -801,22 +801,33 @@ def near_tie_by_bic(tried: list, key) -> tuple:
 HOLDOUT_TIE = 0.05  # hold-out E within 5 % (as POLISH_GAIN): a tie, decided by BIC on all data
 FALLBACKS = 2  # next-ranked SRIVC candidates tried where the chosen one did not converge
 STRUCTURES = 8  # structures whose best setting goes on to SRIVC in the hold-out comparison
+NESTED = 8  # at most this many structures nested in those go on to SRIVC too
 OFFSET_GAIN = 0.05  # an undecided offset term must lower the hold-out E x FPE by 5 % to be kept
 
 
 def _best_per_structure(res: SearchResult, count: int) -> list[int]:
-    """Ranks (in `res`) of the best candidate of each of the first `count` structures."""
-    seen, out = set(), []
+    """Ranks (in `res`) of the best candidate of each of the first `count` structures, then of
+    the structures nested in them that the search tried, one numerator order lower (one m_k
+    less by one) level by level, at most `NESTED` more: MFM's equation-error bias under output
+    noise can rank a structure below its over-parameterised neighbours, and SRIVC and the
+    parsimony rules can only choose a structure that reaches them (a 2-input plant, n = 3,
+    m = (1, 0), at 26 dB: the truth ranked 15th-21st among the structures, never chosen)."""
+    first, order = {}, []  # structure -> rank of its best usable candidate, in rank order
     c = res.columns
     for i in range(len(res)):
         j = int(res.rank[i])
         key = (int(c["n"][j]), tuple(int(v) for v in c["m"][j]))
-        if key not in seen and int(c["status"][j]) == 0:
-            seen.add(key)
-            out.append(i)
-            if len(out) == count:
-                break
-    return out or [0]
+        if key not in first and int(c["status"][j]) == 0:
+            first[key] = i
+            order.append(key)
+    chosen = order[:count]
+    level, most = chosen, len(chosen) + NESTED
+    while level and len(chosen) < most:  # one numerator order lower, level by level
+        nested = [(n, m[:k] + (m[k] - 1,) + m[k + 1:]) for n, m in level
+                  for k in range(len(m)) if m[k] > 0]
+        level = [key for key in dict.fromkeys(nested) if key in first and key not in chosen]
+        chosen += level[: most - len(chosen)]
+    return [first[key] for key in chosen] or [0]
 
 
 SHIFTS = {"start": "starting levels", "mean": "means"}
