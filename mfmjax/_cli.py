@@ -727,6 +727,17 @@ def _grid(text: str, name: str, integer: bool = False) -> list:
 _MAX_RANGE = 10_000  # values in one a:b range: refused above, before building the list
 
 
+def _delays_grid_note(text, K: int) -> None:
+    """A single --delays grid of several values with several inputs is searched for each of
+    them, where identify reads the same text as one delay per input: say so."""
+    if text and K > 1 and ";" not in text and "," in text:
+        values = text.split(",")
+        each = f" ({';'.join(values)})" if len(values) == K else ""
+        print(f"note: --delays {text} is searched as one grid for each of the {K} inputs; "
+              f"for a delay per input, as identify reads it, give one grid per input separated "
+              f"by ';'{each}", file=sys.stderr)
+
+
 def _per_input_grid(text, name, K, integer):
     parts = text.split(";")
     if len(parts) == 1:
@@ -840,6 +851,7 @@ def _cmd_search(args):
     if not args.estimate:  # estimate's notes say it, with its own decision
         _offset_note(sig)  # after the work: a user error stays one line
     _no_inputs_note(args)
+    _delays_grid_note(grid_delays, K)
     if held_back:
         print(f"note: candidates ranked by {args.score} on --identify-window {ident[0]:g},"
               f"{ident[1]:g}, not on the --validate-window data (give --validate to rank on "

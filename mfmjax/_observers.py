@@ -26,7 +26,7 @@ from . import _boundary as _b
 from ._boundary import require_x64
 from ._jit import jit
 from ._linalg import conditioning_eigvals, small_matmul, solve
-from ._model import Model, simulation_form
+from ._model import Model, is_stable, simulation_form
 from ._pytree import replace_fields
 from ._quadrature import EDGE, edge_padded, gregory_weights, record_bucket
 from ._signals import Signals
@@ -172,8 +172,9 @@ def validation_window(signals: Signals, window, observer_window, n: int, fn: str
     return v0, length, ob
 
 
-def checked(obs: Observation, fn: str) -> Observation:
-    """`obs`, or a ValueError naming `fn` when its status says overflow or unobservable."""
+def checked(obs: Observation, fn: str, model: Model | None = None) -> Observation:
+    """`obs`, or a ValueError naming `fn` when its status says overflow or unobservable (for
+    an unstable `model`, unobservable means its growing mode swamps M0: a shorter window)."""
     if not isinstance(obs.status, jax.core.Tracer):
         st = int(obs.status)
         if st & Status.OVERFLOW:
@@ -182,10 +183,14 @@ def checked(obs: Observation, fn: str) -> Observation:
                 "model); shorten the window"
             )
         if st & Status.UNOBSERVABLE:
+            unstable = (model is not None and not _b.is_traced(model.a)
+                        and not is_stable(np.asarray(model.a)))
             raise ValueError(
                 f"{fn}(): the state is not observable on this window (cond(M0) = "
-                f"{float(obs.cond):.1e}); widen the window or check the model"
-            )
+                f"{float(obs.cond):.1e}); " + (
+                    "the model is unstable (a pole with Re > 0) and its growing mode swamps "
+                    "the observer's Gramian: shorten the window" if unstable else
+                    "widen the window or check the model"))
     # under an outer jit/vmap the status stays in the result (read `obs.status`): an
     # eqx.error_if here would keep the caller's program out of the persistent compile cache
     return obs
@@ -203,7 +208,7 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
     an outer jit/vmap nothing can raise, and `status` (a `Status` bit set) says so instead.
     """
     return checked(observation(model, signals, window, observer_window=observer_window),
-                   "observe")
+                   "observe", model)
 
 
 def observation(model: Model, signals: Signals, window=None, *,

@@ -123,6 +123,11 @@ def test_best_out_of_range(data):
         res.best(999)
     with pytest.raises(TypeError, match=r"best\(\): i must be a number, got str"):
         res.best("0")
+    # row() checks its rank as best() does (row(-1) came back labelled rank 0)
+    with pytest.raises(ValueError, match=rf"row\(\): i must be an integer in \[0, "
+                                         rf"{len(res) - 1}\] \(got i=-1\)"):
+        res.row(-1)
+    assert res.row(0)["J_raw"] == float(res.best(0).J) and res.row(0)["J"] == float(res.best(0).J_rel)
 
 
 @pytest.mark.parametrize("kw,err,match", [

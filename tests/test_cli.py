@@ -289,10 +289,18 @@ def test_search_cli(csv_file, tmp_path, capsys):
     best = tmp_path / "best.json"
     assert main(["search", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
                  "--intersample", "foh,zoh", "--n", "2:3", "--m", "0:1;0", "--N", "4", "--M",
-                 "4:5", "--h", "1.5,2", "--top", "3", "--json", "--save", str(best)]) == 0
-    out = json.loads(capsys.readouterr().out)
-    assert out["candidates"] == 16 and len(out["ranked"]) == 3  # 4 structures x 4 groups
+                 "4:5", "--h", "1.5", "--delays", "0,0.01", "--top", "3", "--json", "--save",
+                 str(best)]) == 0
+    cap = capsys.readouterr()
+    out = json.loads(cap.out)
+    # 4 structures x 8 groups (M x both inputs' delays): one grid for each input, which
+    # identify would read as one delay per input, so a note says how to give that
+    assert out["candidates"] == 32 and len(out["ranked"]) == 3
+    assert "note: --delays 0,0.01 is searched as one grid for each of the 2 inputs; for a delay " \
+        "per input, as identify reads it, give one grid per input separated by ';' (0;0.01)" \
+        in cap.err
     assert out["ranked"][0]["n"] == 3 and out["ranked"][0]["m"] == [1, 0]
+    assert out["ranked"][0]["delays"] == [0.0, 0.0]
     import mfmjax
 
     assert mfmjax.load_model(best).n == 3

@@ -161,6 +161,20 @@ def test_observe_says_when_a_delayed_input_reaches_before_the_record():
                                np.asarray(inside.y_sim)[30:], rtol=0, atol=1e-9 * np.abs(y).max())
 
 
+def test_observe_of_an_unstable_model_on_too_long_a_window_says_shorten_it():
+    """A pole at +0.02 over 1000 s: the growing mode (e^20) swamps M0, unobservable; the
+    advice was to widen the window (which makes it worse); 200 s of the same record work."""
+    a = np.real(np.poly([0.02, -0.5]))[::-1]
+    model = Model.from_coefficients(a, [[1.0]])
+    u = np.cumsum(np.random.default_rng(8).standard_normal(1000)) * 0.1
+    y = np.asarray(mfmjax.simulate(model, u, [0.3, -0.2], dt=1.0))
+    sig = Signals(y, u, dt=1.0)
+    with pytest.raises(ValueError, match=r"observe\(\): the state is not observable on this "
+                       r"window .* the model is unstable .* shorten the window"):
+        mfmjax.observe(model, sig)
+    assert float(mfmjax.observe(model, sig, (0.0, 200.0)).E) < 1e-20 * float(np.sum(y[:201] ** 2))
+
+
 def test_state_space_and_exports():
     model = Model.from_coefficients([2.0, 3.0, 1.5, 1.0], [[1.0, 0.5, 0.2, 0.3], [0.7]])
     ss = mfmjax.state_space(model)

@@ -42,7 +42,13 @@ class SearchResult(eqx.Module):
         return int(self.rank.shape[0])
 
     def row(self, i: int) -> dict:
-        """Candidate of rank `i` (0 = best) as a plain dict."""
+        """Candidate of rank `i` (0 = best) as a plain dict (`J` is J_rel, `J_raw` the paper's
+        J of eq. 8)."""
+        from .._boundary import check_rank
+
+        return self._row(check_rank("row", i, len(self)))
+
+    def _row(self, i: int) -> dict:
         c, j = self.columns, int(self.rank[i])
         n = int(c["n"][j])
         m = [int(v) for v in c["m"][j]]
@@ -55,6 +61,7 @@ class SearchResult(eqx.Module):
             "h": float(c["h"][j]),
             "delays": [float(v) for v in c["delays"][j]],
             "J": finite_or_none(c["J"][j]),
+            "J_raw": finite_or_none(c["J_raw"][j]),
             "E": finite_or_none(c["E"][j]),
             "fit": finite_or_none(c["fit"][j]),
             "aic": finite_or_none(c["aic"][j]),
@@ -73,7 +80,7 @@ class SearchResult(eqx.Module):
         from .._boundary import check_rank
 
         i = check_rank("best", i, len(self))
-        r = self.row(i)
+        r = self._row(i)
         c, j = self.columns, int(self.rank[i])
         structure = Structure(r["n"], r["m"])
         f64 = np.float64
@@ -107,7 +114,7 @@ class SearchResult(eqx.Module):
                 f"{'fit% h-o' if held else 'fit%':>8} {'aic':>10} {'bic':>10}  status")
         lines = [head]
         for i in range(min(top, len(self))):
-            r = self.row(i)
+            r = self._row(i)
             lines.append(
                 f"{r['rank']:>4} {r['n']:>2} {','.join(map(str, r['m'])):>8} {r['N']:>4} "
                 f"{r['M']:>4} {r['h']:>9.4g} {','.join(f'{d:g}' for d in r['delays']):>14} "
@@ -117,22 +124,23 @@ class SearchResult(eqx.Module):
         return "\n".join(lines)
 
     def to_dict(self, top: int | None = None) -> dict:
-        rows = [self.row(i) for i in range(len(self) if top is None else min(top, len(self)))]
+        rows = [self._row(i) for i in range(len(self) if top is None else min(top, len(self)))]
         return {"score": self.score, "candidates": len(self), "compile_s": self.compile_s,
                 "run_s": self.run_s, "ranked": rows}
 
     def to_json(self, path=None, top: int | None = None) -> str:
         text = json.dumps(self.to_dict(top))
-        if path is not None:
-            with open(path, "w") as fh:
-                fh.write(text)
+        if path is not None:  # a temporary file renamed over `path`, as every file mfmjax writes
+            from .._persist import atomic_write
+
+            atomic_write(path, text.encode())
         return text
 
     def to_pandas(self):
         """All candidates, ranked, as a pandas DataFrame (pandas is optional)."""
         import pandas as pd
 
-        return pd.DataFrame([self.row(i) for i in range(len(self))])
+        return pd.DataFrame([self._row(i) for i in range(len(self))])
 
 
 def _compact_theta(theta_pad, n, m, res: SearchResult):
