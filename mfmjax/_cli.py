@@ -1118,6 +1118,8 @@ def main(argv=None) -> int:
                 print(f"warning: {err}", file=sys.stderr)
         with warnings.catch_warnings():
             warnings.showwarning = _one_line_warning
+            # its own note says which of --delays/--intersample the model's replace
+            warnings.filterwarnings("ignore", message=r"observe\(\): the signals' delays")
             _quiet_jax_callback_log()
             args.func(args)
     except (_UserError, ValueError, TypeError, OSError) as err:

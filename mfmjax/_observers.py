@@ -232,6 +232,7 @@ def observation(model: Model, signals: Signals, window=None, *,
                        jnp.asarray(start, dtype=jnp.int32), length, ob)
         return obs
     _history_warning(model, signals, start)
+    _settings_warning(model, signals)
     y, u, bound = padded_window(signals, start, length)
     # one program per order n (`simulation_form`), whatever the numerator orders
     obs = _observe(simulation_form(model), y, u, signals.dt, np.int32(start), bound,
@@ -267,6 +268,24 @@ def _history_warning(model: Model, signals: Signals, start: int) -> None:
                 "t_end)), unless the input was steady at that value before the record",
                 stacklevel=4)
             return
+
+
+def _settings_warning(model: Model, signals: Signals) -> None:
+    """Warn when the signals carry delays or zoh inputs (settings a user gave: the defaults
+    are 0 and foh) that differ from the model's, which are the ones used: a model built with
+    the defaults on zoh data with a 3 s delay gave a fit of 33 %, unsaid."""
+    if _b.is_traced(model.delays) or _b.is_traced(signals.delays):
+        return
+    theirs, ours = np.asarray(signals.delays, np.float64), np.asarray(model.delays, np.float64)
+    delays = bool(np.any(theirs != 0) and not np.allclose(theirs, ours, rtol=1e-12, atol=0))
+    rules = any(s == "zoh" and s != m for s, m in zip(signals.intersample, model.intersample))
+    if delays or rules:
+        warnings.warn(
+            f"observe(): the signals' delays {theirs.tolist()} and intersample "
+            f"{list(signals.intersample)} differ from the model's ({ours.tolist()}, "
+            f"{list(model.intersample)}); the model's are used, as it was identified or built "
+            "with them: give the model the data's (Model.from_coefficients(..., delays=, "
+            "intersample=)) if those are right", stacklevel=4)
 
 
 def padded_window(signals: Signals, start: int, length: int, bound: int | None = None):

@@ -161,6 +161,26 @@ def test_observe_says_when_a_delayed_input_reaches_before_the_record():
                                np.asarray(inside.y_sim)[30:], rtol=0, atol=1e-9 * np.abs(y).max())
 
 
+def test_observe_says_when_the_signals_settings_are_not_the_models():
+    """The model's delays and intersample rules are used, not the signals': a model built
+    with the defaults (no delay, foh) observed on zoh data with a 0.3 s delay gave a poor fit
+    unsaid; it warns now, and not where the signals carry the defaults or the model's own."""
+    dt = 0.01
+    u = np.sign(np.sin(0.9 * np.arange(700) * dt))
+    true = Model.from_coefficients([0.24, 1.1, 1.0], [[0.5]], delays=[0.3], intersample=["zoh"])
+    y = np.asarray(mfmjax.simulate(true, u, dt=dt))
+    plain = Model.from_coefficients([0.24, 1.1, 1.0], [[0.5]])
+    data = Signals(y, u, dt=dt, intersample="zoh", delays=[0.3])
+    with pytest.warns(UserWarning, match=r"observe\(\): the signals' delays \[0.3\] and "
+                      r"intersample \['zoh'\] differ from the model's \(\[0.0\], \['foh'\]\); "
+                      "the model's are used"):
+        mfmjax.observe(plain, data, (0.3, 6.99))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mfmjax.observe(true, data, (0.3, 6.99))
+        mfmjax.observe(true, Signals(y, u, dt=dt), (0.3, 6.99))  # the signals' defaults
+
+
 def test_observe_of_an_unstable_model_on_too_long_a_window_says_shorten_it():
     """A pole at +0.02 over 1000 s: the growing mode (e^20) swamps M0, unobservable; the
     advice was to widen the window (which makes it worse); 200 s of the same record work."""
