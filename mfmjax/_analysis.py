@@ -244,11 +244,11 @@ def residuals(model: Model, signals: Signals, window=None, *, observer_window=No
     _check(model, signals, "residuals")
     if isinstance(lags, bool) or not isinstance(lags, (int, np.integer)) or lags < 1:
         raise ValueError(f"residuals(): lags must be an integer >= 1 (got lags={lags!r})")
-    t, y, y_sim, k0 = _simulated(model, signals, window, observer_window, "residuals")
-    N = y.size
-    if lags > N // 4:
+    N = validation_window(signals, window, observer_window, model.n, "residuals", "window")[1]
+    if lags > N // 4:  # before the observer (whose warnings would precede this error)
         raise ValueError(f"residuals(): lags={lags} is more than a quarter of the {N} residual "
                          f"samples; use lags <= {N // 4} or a longer window")
+    t, y, y_sim, k0 = _simulated(model, signals, window, observer_window, "residuals")
     u = np.asarray(signals.u)[k0 : k0 + N]
     e = y - y_sim
     stats = residual_tests(e, u, int(lags))

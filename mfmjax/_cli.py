@@ -969,8 +969,10 @@ def _cmd_report(args):
     window = _window(args.window, "window") if args.window else None
     ob = _observer_window(args.observer_window, window or _whole(sig), sig,
                           window and "--window")
-    cmp = an.compare(model, sig, window, observer_window=ob)
+    # residuals first: it checks --lags before observing (a warning of the observer would
+    # otherwise precede the one-line error)
     res = an.residuals(model, sig, window, observer_window=ob, lags=args.lags)
+    cmp = an.compare(model, sig, window, observer_window=ob)
     step = an.step_response(model, covariance=cov)
     bode = an.frequency_response(model, covariance=cov)
     os.makedirs(args.o, exist_ok=True)
