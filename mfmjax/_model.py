@@ -79,6 +79,11 @@ class Model(eqx.Module):
         from ._boundary import eager_only, number
 
         eager_only("Model.from_coefficients", a, b, offset, delays)
+        for name, value in (("a", a), *((f"b[{k}]", bk) for k, bk in enumerate(b)),
+                            ("delays", delays)):  # True was read as 1.0
+            if value is not None and any(isinstance(v, (bool, np.bool_)) for v in
+                                         np.asarray(value, dtype=object).ravel()):
+                raise TypeError(f"Model.from_coefficients(): {name} holds a bool; give numbers")
         offset = None if offset is None else number("Model.from_coefficients", "offset", offset)
         a = np.asarray(a, dtype=np.float64)
         if a.ndim != 1 or a.size < 2:

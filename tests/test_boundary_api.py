@@ -66,6 +66,17 @@ def test_model_from_coefficients_refuses(b, names, match):
     assert mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], np.array([[1.0, 0.5]])).m == (1,)
 
 
+@pytest.mark.parametrize("a,b,delays,name", [  # a bool was read as 1.0 or 0.0
+    ([True, 3.0, 1.0], [[1.0]], None, "a"),
+    ([2.0, 3.0, 1.0], [[1.0], [True, 0.5]], None, r"b\[1\]"),
+    ([2.0, 3.0, 1.0], [[1.0]], [np.bool_(True)], "delays"),
+])
+def test_model_from_coefficients_refuses_bools(a, b, delays, name):
+    with pytest.raises(TypeError, match=rf"Model.from_coefficients\(\): {name} holds a bool; "
+                                        "give numbers"):
+        mfmjax.Model.from_coefficients(a, b, delays=delays)
+
+
 @pytest.mark.parametrize("args,err,match", [
     ((2.5,), ValueError, r"Structure\(\): n must be an integer \(got n=2.5\)"),
     ((NAN,), ValueError, r"n must be a finite number \(got n=nan\)"),
