@@ -29,7 +29,8 @@ class StateSpace(eqx.Module):
 
 def state_space(model: Model) -> StateSpace:
     r"""Eq. (18): the observable canonical realisation of `model` (a concrete model's on the
-    host in NumPy, so an eager call compiles nothing; a traced one's in JAX)."""
+    host in NumPy, so an eager call compiles nothing; a traced one's in JAX). The input delays
+    are not part of it (`model.delays`; `to_control` can add them as Pade approximants)."""
     require_x64("state_space")
     traced = any(_b.is_traced(x) for x in jax.tree.leaves((model.a, model.b, model.offset)))
     ss = _realised(model, jnp if traced else np)
