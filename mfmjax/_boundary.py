@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
+import sys
 
 import jax
 import numpy as np
@@ -432,6 +434,16 @@ def check_output_error(signals, *, window_, max_steps, rtol, atol) -> None:
     _signals_arg(fn, signals)
     window(fn, "window", window_)
     _steps_tolerances(fn, max_steps, rtol, atol)
+
+
+def user_stacklevel() -> int:
+    """`warnings.warn`'s stacklevel, from the function that calls this, of the first frame
+    outside mfmjax: a warning points at the user's line through any chain of library calls."""
+    root = os.path.dirname(os.path.abspath(__file__))
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(root):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def check_rank(fn: str, i, count: int) -> int:

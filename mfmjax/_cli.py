@@ -416,8 +416,8 @@ def _refine_report(sig, model, vary_delays: bool) -> dict:
         vary = ("h", "N", "M") + (("delays",) if vary_delays else ())
         r = mfmjax.refine(sig, model, vary=vary)
         oe = mfmjax.output_error(sig, r.model)
-    E0 = float(mfmjax.performance_index(model, sig))
-    E1 = float(mfmjax.performance_index(r.model, sig))
+        E0 = float(mfmjax.performance_index(model, sig))
+        E1 = float(mfmjax.performance_index(r.model, sig))
     return {
         "model": oe.model, "settings": r.settings, "start_settings": r.start_settings,
         "refine_result": r.result, "refine_steps": r.steps, "E_mfm": E0, "E_refined": E1,
@@ -730,7 +730,7 @@ _MAX_RANGE = 10_000  # values in one a:b range: refused above, before building t
 def _delays_grid_note(text, K: int) -> None:
     """A single --delays grid of several values with several inputs is searched for each of
     them, where identify reads the same text as one delay per input: say so."""
-    if text and K > 1 and ";" not in text and "," in text:
+    if text and K > 1 and ";" not in text and ("," in text or ":" in text):
         values = text.split(",")
         each = f" ({';'.join(values)})" if len(values) == K else ""
         print(f"note: --delays {text} is searched as one grid for each of the {K} inputs; "
@@ -823,7 +823,8 @@ def _cmd_search(args):
             est = mfmjax.estimate(sig, identify=ident, **kwargs, **(
                 {} if args.holdout is None else {"holdout": args.holdout}))
         estimate_s = time.perf_counter() - started
-        for text in dict.fromkeys(str(w.message) for w in caught):  # each once, one line
+        for text in dict.fromkeys(str(w.message) for w in caught  # estimate's, each once
+                                  if str(w.message).startswith("estimate(")):
             _one_line_warning(text, UserWarning, "", 0)
         result = est.search
         report = {"model": est.model, "method": est.method, "converged": est.converged,

@@ -79,6 +79,10 @@ class Model(eqx.Module):
         from ._boundary import eager_only, number
 
         eager_only("Model.from_coefficients", a, b, offset, delays)
+        if isinstance(b, (str, bytes)) or not hasattr(b, "__iter__"):
+            raise TypeError(f"Model.from_coefficients(): b must be a sequence of per-input "
+                            f"coefficient lists, got {type(b).__name__}; for one input write "
+                            "b=[[b_0, b_1, ...]]")
         for name, value in (("a", a), *((f"b[{k}]", bk) for k, bk in enumerate(b)),
                             ("delays", delays)):  # True was read as 1.0
             if value is not None and any(isinstance(v, (bool, np.bool_)) for v in

@@ -26,7 +26,7 @@ from . import _boundary as _b
 from ._boundary import require_x64
 from ._jit import jit
 from ._linalg import conditioning_eigvals, small_matmul, solve
-from ._model import Model, is_stable, simulation_form
+from ._model import Model, simulation_form
 from ._pytree import replace_fields
 from ._quadrature import EDGE, edge_padded, gregory_weights, record_bucket
 from ._signals import Signals
@@ -34,6 +34,7 @@ from ._simulate import forced_response
 from ._status import Status
 
 MIN_WINDOW = 8  # fewest samples in an observer window (Gregory rule needs 6)
+GROWTH_LIMIT = 10.0  # e-foldings of a growing mode over a window beyond which it swamps M0
 UNOBSERVABLE_COND = 1e13  # cond of the equilibrated Gramian above this: flagged
 
 
@@ -172,9 +173,11 @@ def validation_window(signals: Signals, window, observer_window, n: int, fn: str
     return v0, length, ob
 
 
-def checked(obs: Observation, fn: str, model: Model | None = None) -> Observation:
+def checked(obs: Observation, fn: str, model: Model | None = None,
+            duration: float | None = None) -> Observation:
     """`obs`, or a ValueError naming `fn` when its status says overflow or unobservable (for
-    an unstable `model`, unobservable means its growing mode swamps M0: a shorter window)."""
+    a `model` whose growing mode rises more than e^GROWTH_LIMIT over the window's `duration`,
+    that mode swamps M0: a shorter window)."""
     if not isinstance(obs.status, jax.core.Tracer):
         st = int(obs.status)
         if st & Status.OVERFLOW:
@@ -183,14 +186,16 @@ def checked(obs: Observation, fn: str, model: Model | None = None) -> Observatio
                 "model); shorten the window"
             )
         if st & Status.UNOBSERVABLE:
-            unstable = (model is not None and not _b.is_traced(model.a)
-                        and not is_stable(np.asarray(model.a)))
+            growth = 0.0  # e-foldings of the model's fastest growing mode over the window
+            if model is not None and duration is not None and not _b.is_traced(model.a):
+                a = np.asarray(model.a, dtype=np.float64)
+                growth = float(np.max(np.roots(a[::-1]).real, initial=0.0)) * duration
             raise ValueError(
                 f"{fn}(): the state is not observable on this window (cond(M0) = "
                 f"{float(obs.cond):.1e}); " + (
-                    "the model is unstable (a pole with Re > 0) and its growing mode swamps "
-                    "the observer's Gramian: shorten the window" if unstable else
-                    "widen the window or check the model"))
+                    f"the model is unstable and its growing mode rises e^{growth:.0f}-fold over "
+                    "the window, swamping the observer's Gramian: shorten the window"
+                    if growth > GROWTH_LIMIT else "widen the window or check the model"))
     # under an outer jit/vmap the status stays in the result (read `obs.status`): an
     # eqx.error_if here would keep the caller's program out of the persistent compile cache
     return obs
@@ -207,8 +212,8 @@ def observe(model: Model, signals: Signals, window=None, *, observer_window: flo
     Raises a clear error for unobservable windows and overflowing (unstable) responses; under
     an outer jit/vmap nothing can raise, and `status` (a `Status` bit set) says so instead.
     """
-    return checked(observation(model, signals, window, observer_window=observer_window),
-                   "observe", model)
+    obs = observation(model, signals, window, observer_window=observer_window)
+    return checked(obs, "observe", model, (obs.y_sim.shape[0] - 1) * signals.host_dt)
 
 
 def observation(model: Model, signals: Signals, window=None, *,
@@ -264,28 +269,24 @@ def _history_warning(model: Model, signals: Signals, start: int) -> None:
                 f"{start * dt:g} after the record's first sample: the response in its first "
                 f"{(need - start) * dt:g} uses {name!r} from before the record, taken as held at "
                 f"its first value ({u[0, k]:g}), while the record's {name!r} varies from its "
-                f"start; start the window at {signals.t0 + tau:g} or later (window=(t_start, "
-                "t_end)), unless the input was steady at that value before the record",
-                stacklevel=4)
+                f"start; start the window at {signals.t0 + need * dt:g} or later "
+                "(window=(t_start, t_end)), unless the input was steady at that value before "
+                "the record", stacklevel=_b.user_stacklevel())
             return
 
 
 def _settings_warning(model: Model, signals: Signals) -> None:
-    """Warn when the signals carry delays or zoh inputs (settings a user gave: the defaults
-    are 0 and foh) that differ from the model's, which are the ones used: a model built with
-    the defaults on zoh data with a 3 s delay gave a fit of 33 %, unsaid."""
-    if _b.is_traced(model.delays) or _b.is_traced(signals.delays):
-        return
-    theirs, ours = np.asarray(signals.delays, np.float64), np.asarray(model.delays, np.float64)
-    delays = bool(np.any(theirs != 0) and not np.allclose(theirs, ours, rtol=1e-12, atol=0))
-    rules = any(s == "zoh" and s != m for s, m in zip(signals.intersample, model.intersample))
-    if delays or rules:
+    """Warn when the signals hold a zoh input (a rule a user gave: the default is foh) that
+    the model treats as foh: the model's rules are the ones used (a model built with the
+    defaults on zoh data with a 3 s delay gave a fit of 33 %, unsaid). Delays are not
+    compared: a refined or estimated model's delays differ from the data's by design."""
+    if any(s == "zoh" and s != m for s, m in zip(signals.intersample, model.intersample)):
         warnings.warn(
-            f"observe(): the signals' delays {theirs.tolist()} and intersample "
-            f"{list(signals.intersample)} differ from the model's ({ours.tolist()}, "
-            f"{list(model.intersample)}); the model's are used, as it was identified or built "
-            "with them: give the model the data's (Model.from_coefficients(..., delays=, "
-            "intersample=)) if those are right", stacklevel=4)
+            f"observe(): the signals' intersample {list(signals.intersample)} differs from "
+            f"the model's {list(model.intersample)}; the model's is used, as it was identified "
+            "or built with it (its delays too: model.delays): give the model the data's "
+            "(Model.from_coefficients(..., intersample=, delays=)) if those are right",
+            stacklevel=_b.user_stacklevel())
 
 
 def padded_window(signals: Signals, start: int, length: int, bound: int | None = None):

@@ -75,6 +75,9 @@ def test_model_from_coefficients_refuses_bools(a, b, delays, name):
     with pytest.raises(TypeError, match=rf"Model.from_coefficients\(\): {name} holds a bool; "
                                         "give numbers"):
         mfmjax.Model.from_coefficients(a, b, delays=delays)
+    with pytest.raises(TypeError, match=r"b must be a sequence of per-input coefficient lists, "
+                                        r"got float; for one input write b=\[\[b_0"):
+        mfmjax.Model.from_coefficients(a, 1.0)
 
 
 @pytest.mark.parametrize("args,err,match", [

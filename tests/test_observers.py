@@ -150,8 +150,9 @@ def test_observe_says_when_a_delayed_input_reaches_before_the_record():
         whole = mfmjax.observe(model, full)  # u steady over its first 30 samples
         inside = mfmjax.observe(model, full, (2.0, 6.99))
     with pytest.warns(UserWarning, match=r"observe\(\): input 'q' is delayed by 0.3 and the "
-                      r"window starts 0 after .* start the window at 0.3 or later"):
+                      r"window starts 0 after .* start the window at 0.3 or later") as caught:
         wrong = mfmjax.observe(model, cut)
+    assert caught[0].filename == __file__
     # noise-free, exact model: E at rounding level where the history is known (1e-20 of the
     # output energy), far above it where it is not
     energy = float(np.sum(y**2) * dt)
@@ -162,23 +163,25 @@ def test_observe_says_when_a_delayed_input_reaches_before_the_record():
 
 
 def test_observe_says_when_the_signals_settings_are_not_the_models():
-    """The model's delays and intersample rules are used, not the signals': a model built
+    """The model's intersample rules (and delays) are used, not the signals': a model built
     with the defaults (no delay, foh) observed on zoh data with a 0.3 s delay gave a poor fit
-    unsaid; it warns now, and not where the signals carry the defaults or the model's own."""
+    unsaid; it warns now, at the caller's line, and not where the signals carry the defaults
+    or the model's own (nor for other delays alone: a refined model's differ by design)."""
     dt = 0.01
     u = np.sign(np.sin(0.9 * np.arange(700) * dt))
     true = Model.from_coefficients([0.24, 1.1, 1.0], [[0.5]], delays=[0.3], intersample=["zoh"])
     y = np.asarray(mfmjax.simulate(true, u, dt=dt))
     plain = Model.from_coefficients([0.24, 1.1, 1.0], [[0.5]])
     data = Signals(y, u, dt=dt, intersample="zoh", delays=[0.3])
-    with pytest.warns(UserWarning, match=r"observe\(\): the signals' delays \[0.3\] and "
-                      r"intersample \['zoh'\] differ from the model's \(\[0.0\], \['foh'\]\); "
-                      "the model's are used"):
-        mfmjax.observe(plain, data, (0.3, 6.99))
+    with pytest.warns(UserWarning, match=r"observe\(\): the signals' intersample \['zoh'\] "
+                      r"differs from the model's \['foh'\]; the model's is used") as caught:
+        mfmjax.compare(plain, data, (0.3, 6.99))
+    assert caught[0].filename == __file__  # the user's line, through compare
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         mfmjax.observe(true, data, (0.3, 6.99))
         mfmjax.observe(true, Signals(y, u, dt=dt), (0.3, 6.99))  # the signals' defaults
+        mfmjax.observe(true, Signals(y, u, dt=dt, intersample="zoh", delays=[0.2]), (0.3, 6.99))
 
 
 def test_observe_of_an_unstable_model_on_too_long_a_window_says_shorten_it():

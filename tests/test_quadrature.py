@@ -171,6 +171,6 @@ def test_split_delay_takes_a_whole_number_of_samples_typed_in_decimals_as_whole(
         d, f = split_delay(jnp.asarray((k + 0.25) * dt), dt)
         np.testing.assert_array_equal(np.asarray(d), k)
         np.testing.assert_allclose(np.asarray(f), 0.25, rtol=0, atol=1e-12)  # k dt / dt: 1e-14
-    for tau in (22 * 0.37, 22.25 * 0.37):
-        slope = jax.grad(lambda t: split_delay(t, 0.37)[1])(tau)
-        np.testing.assert_allclose(float(slope), 1 / 0.37, rtol=1e-15)
+    for tau, dt in ((22 * 0.37, 0.37), (22.25 * 0.37, 0.37), (1.0, 0.5)):  # 1.0 / 0.5 = 2
+        slope = jax.grad(lambda t, dt=dt: split_delay(t, dt)[1])(tau)  # exactly: the old clip
+        np.testing.assert_allclose(float(slope), 1 / dt, rtol=1e-15)  # halved it (1 / (2 dt))
