@@ -450,7 +450,11 @@ def _stand_in(first: Signals, structs: list, h: float) -> SearchResult:
                 delays=np.tile(np.asarray(first.delays, np.float64).reshape(1, K), (C, 1)),
                 J=one, J_raw=one, E=one, fit=one, aic=one, bic=one, cond=one,
                 status=np.zeros(C, np.int32), theta=theta, a=a, b=b, offset=np.zeros(C))
-    return SearchResult(columns=cols, rank=np.arange(C), score="E", n_max=n_max, m_max=m_max,
+    # ranked largest structures first, as MFM's bias ranks them under noise: the structures
+    # nested in the best `STRUCTURES` then join them (`_best_per_structure`) as in a real
+    # search, and the stages' chunks (and single pairs beyond them) are those of the real call
+    return SearchResult(columns=cols, rank=np.arange(C)[::-1], score="E", n_max=n_max,
+                        m_max=m_max,
                         intersample=first.intersample, has_offset=first.offset,
                         output_name=first.output_name, input_names=first.input_names,
                         compile_s=0.0, run_s=0.0)
