@@ -8,7 +8,8 @@ dt = 0.05, 2000 samples, white output noise of 5 % of the output's standard devi
 records of seeds 100.. ; the grid h (1, 2), n (2, 3), N (3, 4), M (3, 4) and the default m
 (every m_k <= n: 25 structures). In one process, `NESTED` = 8 (the default) and 0 (the best 8
 structures only) alternated: the first calls compile (their time printed apart), then
-`repeats` rounds of the records one at a time and as one batch. Prints the structure choices,
+`repeats` rounds of the records one at a time and as one batch (NESTED = 0 runs second and
+reuses the programs NESTED = 8 compiled: its first calls are mostly run time). Prints the structure choices,
 the times per record and the ratios; saves benchmarks/results/estimate_nested.json.
 """
 
