@@ -1122,7 +1122,7 @@ def main(argv=None) -> int:
         with warnings.catch_warnings():
             warnings.showwarning = _one_line_warning
             # its own note says which of --delays/--intersample the model's replace
-            warnings.filterwarnings("ignore", message=r"observe\(\): the signals' delays")
+            warnings.filterwarnings("ignore", message=r"observe\(\): the signals' intersample")
             _quiet_jax_callback_log()
             args.func(args)
     except (_UserError, ValueError, TypeError, OSError) as err:

@@ -162,6 +162,7 @@ def test_validate_and_report_say_when_the_columns_differ_from_the_models(csv_fil
     err = capsys.readouterr().err
     assert "note: --delays 0.5,0.0 is not used: the model's own (0,0) are" in err
     assert "note: --intersample zoh,zoh is not used: the model's own (foh,zoh) are" in err
+    assert "warning: observe()" not in err  # the note says it (not the library's warning too)
     assert main(["validate", *common, "--inputs", "u1,u2", "--delays", "0,0"]) == 0  # its own
     assert "not used" not in capsys.readouterr().err
     # data read unlike the model's (saved with it: dt and --detrend): a model of detrended
