@@ -151,7 +151,8 @@ def load_model(path) -> Model:
     """Read a model written by `save_model`; clear errors for malformed or foreign files.
 
     Refuses non-finite or mis-sized coefficients (a, b, offset, theta), an unknown status and
-    a theta whose length does not match the structure (n + 1 + sum(m_k + 1) [+ 1 offset]).
+    a theta whose length does not match the structure (n + 1 + sum(m_k + 1) [+ 1 offset], or
+    one less: a fitted model's free parameters, which it keeps as its theta).
     """
     require_x64("load_model")
     try:
@@ -186,13 +187,36 @@ def load_model(path) -> Model:
         if doc.get("h") is not None:
             model = _with_mf(model, doc)
         else:  # a model without MF settings (output error, SRIVC, estimate) keeps its status
-            model = replace_fields(model, status=np.int32(_status(doc.get("status"))))
+            model = replace_fields(model, status=np.int32(_status(doc.get("status"))),
+                                   **_free_theta(model, doc.get("theta")))
     except KeyError as err:
         raise ValueError(f"load_model(): {path} is missing or has a bad field: it has no field {err}") from None
     except (TypeError, ValueError) as err:
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise ValueError(f"load_model(): {path} is missing or has a bad field: {msg}") from None
     return model
+
+
+def _free_theta(model: Model, theta) -> dict:
+    """{"theta": ...} where the file's theta is a fitted model's free parameters (output error,
+    SRIVC, `estimate`: a_0..a_{n-1}, the b_kj, the offset), which `from_coefficients` would
+    replace by its normalised [a; b; offset]; {} for that full-length one (rebuilt the same)
+    or none."""
+    if theta is None:
+        return {}
+    theta = np.asarray(theta, dtype=np.float64)
+    full = model.structure.n_params + int(model.has_offset)
+    if theta.shape == (full,):
+        return {}
+    if theta.shape != (full - 1,):
+        raise ValueError(f"theta has {theta.size} values but n={model.n}, m={list(model.m)}"
+                         f"{' and an offset' if model.has_offset else ''} need {full} (or "
+                         f"{full - 1} free parameters)")
+    if not np.all(np.isfinite(theta)):
+        raise ValueError("theta contains NaN or inf")
+    import jax
+
+    return {"theta": jax.device_put(theta)}  # NumPy on the device: no eager program
 
 
 def _finite_or_none(v, name):

@@ -84,7 +84,7 @@ def test_unstable_start_is_stabilised_and_fitted(noisy):
     assert "start was unstable" in fit.summary()
 
 
-def test_fitted_model_describes_its_own_parameters(noisy):
+def test_fitted_model_describes_its_own_parameters(noisy, tmp_path):
     """The returned model carries what describes it, not the start's MFM diagnostics: `theta`
     is the fitted free-parameter vector (as `srivc`'s), J, J_rel and cond are NaN, no MF, and
     the status says whether A(s) is Hurwitz. A truly unstable plant (pole at +0.048, 20 s
@@ -94,6 +94,10 @@ def test_fitted_model_describes_its_own_parameters(noisy):
     fit = mfmjax.output_error(noisy, start)
     m = fit.model
     np.testing.assert_array_equal(np.asarray(m.theta), fit.theta)
+    # and keeps it through its file (load_model rebuilt [a; b] / sum, one entry longer)
+    mfmjax.save_model(m, tmp_path / "oe.json")
+    np.testing.assert_array_equal(np.asarray(mfmjax.load_model(tmp_path / "oe.json").theta),
+                                  fit.theta)
     np.testing.assert_array_equal(np.asarray(m.a)[:2], fit.theta[:2])
     assert np.isnan(float(m.J)) and np.isnan(float(m.J_rel)) and np.isnan(float(m.cond))
     assert m.mf is None and int(m.status) == 0
