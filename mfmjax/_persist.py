@@ -9,10 +9,11 @@ import math
 import os
 import tempfile
 
+import jax
 import numpy as np
 
 from ._boundary import eager_only, require_x64
-from ._model import Model
+from ._model import Model, is_stable
 from ._modulating import ModulatingFunction
 from ._pytree import replace_fields
 from ._status import Status
@@ -184,11 +185,18 @@ def load_model(path) -> Model:
             output_name=doc.get("output_name", "y"),
             input_names=doc.get("input_names"),
         )
+        for key, own in (("n", model.n), ("m", list(model.m))):  # edited by hand: agree
+            if key in doc and doc[key] != own:
+                raise ValueError(f"{key}={doc[key]} but the coefficients a and b give {key}={own}")
         if doc.get("h") is not None:
             model = _with_mf(model, doc)
         else:  # a model without MF settings (output error, SRIVC, estimate) keeps its status
             model = replace_fields(model, status=np.int32(_status(doc.get("status"))),
                                    **_free_theta(model, doc.get("theta")))
+        # the unstable bit follows a (a hand-edited a kept `ok`)
+        unstable = not is_stable(np.asarray(model.a))
+        status = (int(model.status) & ~int(Status.UNSTABLE)) | (int(Status.UNSTABLE) * unstable)
+        model = replace_fields(model, status=jax.device_put(np.int32(status)))
     except KeyError as err:
         raise ValueError(f"load_model(): {path} is missing or has a bad field: it has no field {err}") from None
     except (TypeError, ValueError) as err:
@@ -244,6 +252,9 @@ def _with_mf(model: Model, doc: dict) -> Model:
     import jax
 
     mf = ModulatingFunction(doc["N"], doc["M"], doc["h"])
+    for key in ("N", "M"):  # eq. 5: as identify requires
+        if float(doc[key]) < model.n:
+            raise ValueError(f"{key}={doc[key]} is below n={model.n}; {key} must be >= n")
     theta = np.asarray(doc["theta"], dtype=np.float64)
     size = model.structure.n_params + int(model.has_offset)
     if theta.shape != (size,):

@@ -238,6 +238,20 @@ def test_model_roundtrip(model_doc, tmp_path):
     assert int(back.status) == int(model.status)
 
 
+def test_load_model_status_says_unstable_when_a_is(model_doc, tmp_path):
+    """A hand-edited a with a right-half-plane root kept the file's `ok`; the unstable bit
+    follows a (and leaves when a is stable again)."""
+    doc = json.loads(json.dumps(model_doc[1]))
+    assert doc["status"] == "ok"
+    doc["a"][0] = -abs(doc["a"][0])  # a_0 < 0 < a_n: a real root in the right half plane
+    path = tmp_path / "edited.json"
+    path.write_text(json.dumps(doc))
+    assert int(mfmjax.load_model(path).status) == int(mfmjax.Status.UNSTABLE)
+    doc["a"][0], doc["status"] = abs(doc["a"][0]), "unstable"
+    path.write_text(json.dumps(doc))
+    assert int(mfmjax.load_model(path).status) == 0
+
+
 @pytest.mark.parametrize(
     "change, match",
     [
@@ -250,6 +264,10 @@ def test_model_roundtrip(model_doc, tmp_path):
         (lambda d: d.update(status="wobbly"), "unknown flag 'wobbly'"),
         (lambda d: d.pop("delays"), "has no field 'delays'"),
         (lambda d: d.update(a="x"), "has a bad field"),
+        # edited by hand: orders that disagree with the coefficients, N below n (eq. 5)
+        (lambda d: d.update(n=2), r"n=2 but the coefficients a and b give n=3"),
+        (lambda d: d.update(m=[1, 1]), r"m=\[1, 1\] but the coefficients a and b give m=\[1, 0\]"),
+        (lambda d: d.update(N=2), "N=2 is below n=3; N must be >= n"),
     ],
 )
 def test_load_model_refuses_bad_coefficients(model_doc, tmp_path, change, match):
