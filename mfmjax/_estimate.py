@@ -32,7 +32,7 @@ from ._padded import observe_candidate, padded_model
 from ._pytree import replace_fields
 from ._quadrature import window_bucket
 from ._search import SearchResult, plan_search, run_plan
-from ._search._grid import CHUNK_SETTINGS, delay_edge_notes, grid_values, structures
+from ._search._grid import CHUNK_SETTINGS, delay_edge_notes, delay_grids, grid_values, structures
 from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
 from ._signals import Signals, dependent_inputs, offset_undecided, output_start
 from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc, srivc_many
@@ -213,8 +213,7 @@ def estimate(
             outs[r] = replace_fields(o, model=replace_fields(o.model, status=status),
                                      notes=o.notes + (text,))
             warnings.warn(f"estimate(){which}: {text}", stacklevel=2)
-    edges = [] if delays is None else [
-        [float(d) for d in grid_values(dk, f"delays[{k}]")] for k, dk in enumerate(delays)]
+    edges = [] if delays is None else delay_grids(delays)
     doubtful = {}  # warned once per batch: {first record's text: records}
     n_top = max(grid_values(n, "n"))
     checked = residual_notes(records, outs, n_top, whole=identify is None)

@@ -62,6 +62,11 @@ def grid_values(x, name: str) -> list:
     return vals
 
 
+def delay_grids(delays) -> list[list[float]]:
+    """The per-input delay grids of a `delays=` argument as lists of floats."""
+    return [[float(d) for d in grid_values(dk, f"delays[{k}]")] for k, dk in enumerate(delays)]
+
+
 def structures(n_grid, m_grid, K: int) -> list[tuple[int, tuple[int, ...]]]:
     out = []
     for n in sorted(set(int(v) for v in n_grid)):
@@ -185,7 +190,7 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
         if len(m) != K:
             raise ValueError(f"search(): m needs one list of orders per input ({K}), got {len(m)}")
     if delays is not None:
-        delays = [[float(d) for d in grid_values(dk, f"delays[{k}]")] for k, dk in enumerate(delays)]
+        delays = delay_grids(delays)
         if len(delays) != K:
             raise ValueError(f"search(): delays needs one list per input ({K}), got {len(delays)}")
     else:

@@ -10,7 +10,7 @@ import numpy as np
 from .._signals import Signals, dependent_candidates
 from .._status import Status, describe
 from ._engine import run_plan
-from ._grid import CHUNK_SETTINGS, delay_edge_notes, grid_values, plan_search
+from ._grid import CHUNK_SETTINGS, delay_edge_notes, delay_grids, plan_search
 from ._result import SearchResult
 
 
@@ -95,6 +95,5 @@ def _doubtful_best(res: SearchResult, delays) -> None:
                       f"{best}); best() returns a flagged model: see the status column and "
                       "Status", stacklevel=3)
     elif delays is not None:
-        grid = [[float(d) for d in grid_values(dk, f"delays[{k}]")] for k, dk in enumerate(delays)]
-        for text in delay_edge_notes(res.row(0)["delays"], res.input_names, grid):
+        for text in delay_edge_notes(res.row(0)["delays"], res.input_names, delay_grids(delays)):
             warnings.warn(f"search(), best candidate: {text}", stacklevel=3)
