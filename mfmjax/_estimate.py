@@ -816,15 +816,14 @@ def _best_per_structure(res: SearchResult, count: int) -> list[int]:
     noise can rank a structure below its over-parameterised neighbours, and SRIVC and the
     parsimony rules can only choose a structure that reaches them (a 2-input plant, n = 3,
     m = (1, 0), at 26 dB: the truth ranked 15th-21st among the structures, never chosen)."""
-    first, order = {}, []  # structure -> rank of its best usable candidate, in rank order
-    c = res.columns
-    for i in range(len(res)):
-        j = int(res.rank[i])
-        key = (int(c["n"][j]), tuple(int(v) for v in c["m"][j]))
-        if key not in first and int(c["status"][j]) == 0:
-            first[key] = i
-            order.append(key)
-    chosen = order[:count]
+    c, ranked = res.columns, np.asarray(res.rank)
+    usable = np.flatnonzero(np.asarray(c["status"])[ranked] == 0)  # ranks of usable candidates
+    keys = np.column_stack([c["n"], np.asarray(c["m"]).reshape(len(c["n"]), -1)])[ranked]
+    _, at = np.unique(keys[usable], axis=0, return_index=True)
+    # structure -> rank of its best usable candidate, in rank order
+    first = {(int(keys[i][0]), tuple(int(v) for v in keys[i][1:])): int(i)
+             for i in np.sort(usable[at])}
+    chosen = list(first)[:count]
     level, most = chosen, len(chosen) + NESTED
     while level and len(chosen) < most:  # one numerator order lower, level by level
         nested = [(n, m[:k] + (m[k] - 1,) + m[k + 1:]) for n, m in level

@@ -222,8 +222,6 @@ def _free_theta(model: Model, theta) -> dict:
                          f"{full - 1} free parameters)")
     if not np.all(np.isfinite(theta)):
         raise ValueError("theta contains NaN or inf")
-    import jax
-
     return {"theta": jax.device_put(theta)}  # NumPy on the device: no eager program
 
 

@@ -135,7 +135,9 @@ def test_search_warns_when_its_best_cannot_be_trusted(noisy):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             res = mfmjax.search(sig, **grid)
-        said = [str(w.message) for w in caught if "search()" in str(w.message)]
+        said = [w for w in caught if "search()" in str(w.message)]
+        assert all(w.filename == __file__ for w in said)  # the user's line
+        said = [str(w.message) for w in said]
         assert len(said) == (want is not None) and (want is None or want in said[0]), said
         assert (int(res.best().status) != 0) == (sig is flat)
 

@@ -7,6 +7,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from .._boundary import user_stacklevel
 from .._signals import Signals, dependent_candidates
 from .._status import Status, describe
 from ._engine import run_plan
@@ -93,7 +94,7 @@ def _doubtful_best(res: SearchResult, delays) -> None:
         best = describe(int(status[res.rank[0]]))
         warnings.warn(f"search(): every one of the {len(res)} candidates is flagged (the best: "
                       f"{best}); best() returns a flagged model: see the status column and "
-                      "Status", stacklevel=3)
+                      "Status", stacklevel=user_stacklevel())
     elif delays is not None:
         for text in delay_edge_notes(res.row(0)["delays"], res.input_names, delay_grids(delays)):
-            warnings.warn(f"search(), best candidate: {text}", stacklevel=3)
+            warnings.warn(f"search(), best candidate: {text}", stacklevel=user_stacklevel())
