@@ -30,7 +30,7 @@ from ._output_error import (
 )
 from ._padded import observe_candidate, padded_model
 from ._pytree import replace_fields
-from ._quadrature import window_bucket
+from ._quadrature import record_bucket
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import CHUNK_SETTINGS, delay_edge_notes, delay_grids, grid_values, structures
 from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
@@ -298,7 +298,7 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
         warnings.simplefilter("ignore")
         obs = map_pairs(_observed, [records[r] for r in todo],
                         [padded_model(outs[r].model, n_max) for r in todo], device=False,
-                        start=np.int32(0), length=window_bucket(T, T), ob_length=np.int32(T),
+                        start=np.int32(0), length=record_bucket(T), ob_length=np.int32(T),
                         valid=np.int32(T))
     for r, o in zip(todo, obs):
         if o is None or int(o.status) & (Status.OVERFLOW | Status.UNOBSERVABLE):
@@ -509,9 +509,14 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
                                     "record)",)))
         return out
     est_sigs = [rec.window(*sel0.estimation[0]) for rec in records]
-    # the estimation data padded to its `window_bucket` in the record (an identify window)
+    # every stage's data (estimation data, fit parts, hold-out windows) padded to the whole
+    # record's `record_bucket`, only its own samples counting: one program per stage, not one
+    # per share of the record (fit part, hold-out block, estimation data): a first call
+    # compiled 6 programs instead of 9, 10.1-10.4 s against 12.6-12.8 s, warm calls alike
+    # (139-154 against 140-147 ms; `python benchmarks/estimate_first_call.py --compare DIR`);
+    # results bitwise equal
     T = records[0].n_samples
-    est_bucket = window_bucket(est_sigs[0].n_samples, T)
+    est_bucket = record_bucket(T)
     folds = []  # (fit part per record, hold-out window, observer length, y_hold per record)
     for (fit_w,), hold in sel0.folds:
         folds.append(([rec.window(*fit_w) for rec in records], hold,
@@ -530,13 +535,11 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         fit = np.zeros_like(E)
         for f, (_, hold, ob, y_hold) in enumerate(folds):
             start, length, ob = validation_window(records[0], hold, ob, n_max, "estimate")
-            # the window padded to its `window_bucket` (only its own samples count; past the
-            # record's end the last sample is held): records of every length in a record
-            # bucket share the observer's program
-            bound = window_bucket(length, T)
+            # the window padded to the record's bucket (only its own samples count; past the
+            # record's end the last sample is held)
             obs = map_pairs(_observed, [records[r] for r, _ in pairs],
                             [padded_model(ms[f], n_max) for _, ms in pairs],
-                            device=False, start=np.int32(start), length=bound,
+                            device=False, start=np.int32(start), length=est_bucket,
                             ob_length=np.int32(ob), valid=np.int32(length))
             for k, ((r, _), o) in enumerate(zip(pairs, obs)):
                 if o is None or int(o.status) & (Status.OVERFLOW | Status.UNOBSERVABLE):
@@ -550,11 +553,9 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
     def per_fold(stage, pairs, **kw):
         """The stage's result on each fold for each (record, starts per fold) (its best iterate
         when it stopped early: the hold-out E judges it); None where it could not run."""
-        # each fit part padded to its `window_bucket` in the record: records of every length
-        # in a record bucket share the stage's programs
+        # each fit part padded to the record's bucket (`est_bucket`)
         outs = [_staged_many(stage, [folds[f][0][r] for r, _ in pairs],
-                             [ms[f] for _, ms in pairs], shift=shift,
-                             bucket=window_bucket(folds[f][0][0].n_samples, T), **kw)
+                             [ms[f] for _, ms in pairs], shift=shift, bucket=est_bucket, **kw)
                 for f in range(len(folds))]
         return [None if any(o[k] is None for o in outs) else [o[k] for o in outs]
                 for k in range(len(pairs))]

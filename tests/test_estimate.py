@@ -213,7 +213,7 @@ def test_estimate_batch_compiles_nothing_for_another_record_length(batch_20db, l
     programs compiled again), and 1290 (hold-out blocks of 430 samples and fit parts of 860,
     whose own buckets, 448 and 896, are not those of 500 and 1000: 9 programs compiled again).
     The hold-out observer's window and the fit parts given to SRIVC and output error are
-    padded to their `window_bucket` in the record, only their own samples counting. The
+    padded to the record's bucket, only their own samples counting. The
     estimates equal the unpadded computation's: the chosen stage and structure are those of
     the 1500-sample batch, and `test_estimate_batch_equals_one_record_at_a_time` compares a
     batch with the single-record path."""
