@@ -112,12 +112,16 @@ def identify_core(signals, structure, mf, eta, length: int, end=None,
     if corrections:  # m_k = n: remove D_k * Delta_k from the output columns, re-solve
         starts = np.cumsum([n + 1] + [mk + 1 for mk in structure.m])
         y_cols = ms.columns[:, : n + 1]
-        for _ in range(FEEDTHROUGH_STEPS):
+
+        def step(_, carry):  # one program for every step (as the search's)
+            theta, ms, _ = carry
             an = jnp.where(theta[n] != 0, theta[n], 1.0)
             fix = sum(theta[starts[k] + n] / an * delta for k, delta in corrections)
             ms = eqx.tree_at(lambda m: m.columns, ms, ms.columns.at[:, : n + 1].set(y_cols - fix))
             G = gram_matrix(ms)
-            theta, _, _ = constrained_solve(G, eta, alive, conditioning=False)
+            return constrained_solve(G, eta, alive, conditioning=False)[0], ms, G
+
+        theta, ms, G = jax.lax.fori_loop(0, FEEDTHROUGH_STEPS, step, (theta, ms, G))
         theta, cond, reduced = constrained_solve(G, eta, alive)
     finite = jnp.isfinite(signals.y).all() & jnp.isfinite(signals.u).all()
     status, div, quad, J_rel = finish_solve(theta, G, reduced, n, finite,
