@@ -98,7 +98,9 @@ def _model_path(args) -> str:
     return args.model if args.model is not None else args.model_option
 
 
-def _add_data_args(p: argparse.ArgumentParser):
+def _add_data_args(p: argparse.ArgumentParser, *, online: bool = False):
+    """The record's arguments; `online`: those it does not take (offset, --resample,
+    --detrend) are hidden and refused by `_cmd_online`."""
     p.add_argument("file", help="CSV file with a header row")
     p.add_argument("--output", required=True, help="output column name")
     p.add_argument("--inputs", default="", help="input column names, comma separated")
@@ -109,20 +111,22 @@ def _add_data_args(p: argparse.ArgumentParser):
     p.add_argument("--intersample", help="per input: zoh or foh (default foh)")
     p.add_argument("--delays", help="per input transport delay in time units "
                    "(search: one grid per input separated by ';')")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--offset", action="store_true", default=None, help="add a constant offset "
-                   "term (default: decided from the data, see Signals(offset=None))")
-    g.add_argument("--no-offset", dest="offset", action="store_false",
-                   help="no offset term, whatever the data")
     p.add_argument("--names", help="column names for a file without header (comma separated)")
+    hide = (lambda text: argparse.SUPPRESS) if online else (lambda text: text)
+    # (argparse's usage line fails on a group whose members are all hidden)
+    g = p if online else p.add_mutually_exclusive_group()
+    g.add_argument("--offset", action="store_true", default=None, help=hide("add a constant "
+                   "offset term (default: decided from the data, see Signals(offset=None))"))
+    g.add_argument("--no-offset", dest="offset", action="store_false",
+                   help=hide("no offset term, whatever the data"))
     p.add_argument("--resample", type=_number("resample", lo=0, lo_open=True), metavar="DT",
-                   help="read a non-uniform --time column onto a uniform grid of step DT (inputs "
-                   "by --intersample, the output linearly; mfmjax.resample)")
+                   help=hide("read a non-uniform --time column onto a uniform grid of step DT (inputs "
+                   "by --intersample, the output linearly; mfmjax.resample)"))
     p.add_argument("--detrend", choices=("linear", "constant"),
-                   help="remove the least-squares line (or the mean) of the output and of each "
+                   help=hide("remove the least-squares line (or the mean) of the output and of each "
                    "input, fitted on --identify-window (default: the whole record) and removed "
                    "from the whole record; the model is then for deviations from them and has "
-                   "no offset term unless --offset (mfmjax.detrend, Trend.apply)")
+                   "no offset term unless --offset (mfmjax.detrend, Trend.apply)"))
 
 
 def _add_window_args(p: argparse.ArgumentParser):
@@ -558,6 +562,14 @@ def _cmd_online(args):
     from ._online import OnlineIdentifier, load_with_extra, model_table
     from ._signals import read_csv
 
+    given = [flag for flag, on in (("--offset/--no-offset", args.offset is not None),
+                                   ("--resample", args.resample is not None),
+                                   ("--detrend", args.detrend is not None)) if on]
+    if given:  # shared with identify/search, not read here: refused rather than ignored
+        raise _UserError(f"{given[0]}: online does not take it: it reads the record's samples "
+                         "as they are, uniformly sampled, and its --config TOML sets the model "
+                         "form (offset = true/false); resample or detrend the CSV first "
+                         "(mfmjax.resample, mfmjax.detrend)")
     cols = read_csv(args.file, [c.strip() for c in args.names.split(",")] if args.names else None)
     inputs = _columns(args)
     for c in [args.output, *inputs] + ([args.time] if args.time else []):
@@ -728,9 +740,9 @@ _MAX_RANGE = 10_000  # values in one a:b range: refused above, before building t
 
 
 def _delays_grid_note(text, K: int) -> None:
-    """A single --delays grid of several values with several inputs is searched for each of
-    them, where identify reads the same text as one delay per input: say so."""
-    if text and K > 1 and ";" not in text and ("," in text or ":" in text):
+    """A single --delays grid with several inputs is searched for each of them, where
+    identify reads a list as one delay per input (and refuses a single value): say so."""
+    if text and K > 1 and ";" not in text:
         values = text.split(",")
         each = f" ({';'.join(values)})" if len(values) == K else ""
         print(f"note: --delays {text} is searched as one grid for each of the {K} inputs; "
@@ -1075,7 +1087,7 @@ def main(argv=None) -> int:
                    help="correlation lags of the residual tests (default 25)")
     p.set_defaults(func=_cmd_report)
     p = sub.add_parser("online", help="on-line identification and prediction (Algorithm 1)")
-    _add_data_args(p)
+    _add_data_args(p, online=True)
     p.add_argument("--config", help="TOML file of OnlineConfig settings (e.g. interval = 250)")
     p.add_argument("--plot", help="write the prediction figure (paper's Fig. 3) to this PNG")
     p.add_argument("--json", action="store_true", help="print one JSON object")

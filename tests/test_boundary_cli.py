@@ -161,6 +161,22 @@ def test_subcommand_help(capsys, command):
     assert exc.value.code == 0 and f"usage: mfmjax {command}" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("flag", [["--resample", "2"], ["--detrend", "linear"], ["--offset"],
+                                  ["--no-offset"]])
+def test_online_refuses_the_record_options_it_does_not_read(capsys, tmp_path, flag):
+    """--resample, --detrend and --offset/--no-offset belong to identify and search; `online`
+    listed them in its help and ran with the same MSE whatever they said. Now refused (before
+    the file is read) and not in its help."""
+    err = _one_line_error(capsys, 2, ["online", str(tmp_path / "x.csv"), "--output", "y",
+                                      "--inputs", "u", "--dt", "1", *flag],
+                          "online does not take it")
+    assert err.startswith("error: " + ("--offset/--no-offset" if "offset" in flag[0]
+                                       else flag[0])), err
+    with pytest.raises(SystemExit):
+        main(["online", "--help"])
+    assert flag[0] not in capsys.readouterr().out
+
+
 def test_internal_error_exit_1_with_bug_hint(capsys, monkeypatch, tmp_path):
     import mfmjax.datasets as ds
 

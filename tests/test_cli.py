@@ -307,6 +307,20 @@ def test_search_cli(csv_file, tmp_path, capsys):
     assert mfmjax.load_model(best).n == 3
 
 
+def test_search_notes_a_single_delay_grid_for_several_inputs(capsys):
+    """One --delays grid, even a single value, is searched for every input ("0.5" with two
+    inputs: both delayed 0.5, where identify refuses the text); a grid per input, or one
+    input, needs no note."""
+    from mfmjax._cli import _delays_grid_note
+
+    _delays_grid_note("0.5", 2)
+    assert "note: --delays 0.5 is searched as one grid for each of the 2 inputs" in \
+        capsys.readouterr().err
+    for text, K in (("0.5", 1), ("0.5;0", 2), ("0,1", 1), (None, 2)):
+        _delays_grid_note(text, K)
+        assert capsys.readouterr().err == "", (text, K)
+
+
 def test_search_with_a_validation_window_ranks_on_the_identification_window(csv_file, capsys):
     """`search --identify-window A --validate-window B` without `--validate` ranked the
     candidates by E over the whole record, B included, and then reported B's fit as data the
