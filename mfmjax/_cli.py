@@ -397,7 +397,9 @@ def _cmd_identify(args):
     if args.json:
         out = model.to_dict()
         if report:
-            out["refined"] = {k: v for k, v in report.items() if k != "model"}
+            # the model validated and saved (the top level is the MFM estimate it started from)
+            out["refined"] = {**{k: v for k, v in report.items() if k != "model"},
+                              "model": report["model"].to_dict()}
         if validation:
             out["validation"] = validation
         _print_json(out)
@@ -879,7 +881,8 @@ def _cmd_search(args):
             out["observer_window"] = kwargs["observer_window"]
         if report:
             key = "estimated" if "summary" in report else "refined"
-            out[key] = {k: v for k, v in report.items() if k not in ("model", "summary")}
+            out[key] = {**{k: v for k, v in report.items() if k not in ("model", "summary")},
+                        "model": report["model"].to_dict()}  # the model validated and saved
         _print_json(out)
     else:
         # estimate's time is the whole call's (its last search's compile/run is a part of it)

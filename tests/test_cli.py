@@ -435,10 +435,20 @@ def test_search_cli_errors(csv_file, capsys, extra, match):
     assert match in err and len(err.splitlines()) == 1
 
 
-def test_identify_and_search_refine(csv_file, capsys):
-    assert main(["identify", str(csv_file), *ARGS, "--refine", "--json"]) == 0
+def test_identify_and_search_refine(csv_file, capsys, tmp_path):
+    import mfmjax
+
+    saved = tmp_path / "refined.json"
+    assert main(["identify", str(csv_file), *ARGS, "--refine", "--json", "--save",
+                 str(saved)]) == 0
     out = json.loads(capsys.readouterr().out)
     ref = out["refined"]
+    # the JSON carries the model it saved and validated (its top level is the MFM start)
+    kept = mfmjax.load_model(saved)
+    np.testing.assert_array_equal(ref["model"]["a"], np.asarray(kept.a))
+    for bk, kk in zip(ref["model"]["b"], kept.b):
+        np.testing.assert_array_equal(bk, np.asarray(kk))
+    assert ref["model"]["a"] != out["a"]
     assert set(ref["settings"]) == {"h", "N", "M", "delays"}
     assert ref["refine_result"] in ("successful", "max_steps_reached")
     assert ref["E_output_error"] <= ref["E_mfm"] * (1 + 1e-9)
@@ -448,8 +458,6 @@ def test_identify_and_search_refine(csv_file, capsys):
     # search refines on the data it fitted: with --identify-window, that window (refine and
     # output error ran on the whole record, --validate-window's data included, which the
     # validation line then called held back); the refined E_mfm is the winner's E there
-    import mfmjax
-
     assert main(["search", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
                  "--intersample", "foh,zoh", "--n", "3", "--m", "1;0", "--N", "4", "--M", "5",
                  "--h", "2.0", "--identify-window", "0,12", "--validate-window", "12.5,19.99",
@@ -457,6 +465,7 @@ def test_identify_and_search_refine(csv_file, capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["validation"]["overlaps_identification"] is False
     assert set(out["refined"]["parameters"]) == {"a_0", "a_1", "a_2", "b_10", "b_11", "b_20"}
+    assert out["refined"]["model"]["n"] == 3
     row = out["ranked"][0]
     best = mfmjax.Model.from_coefficients(row["a"], row["b"], intersample=("foh", "zoh"))
     sig = mfmjax.Signals.from_csv(csv_file, output="temp", inputs=["u1", "u2"], time="t",
