@@ -1138,6 +1138,8 @@ def main(argv=None) -> int:
             warnings.showwarning = _one_line_warning
             # its own note says which of --delays/--intersample the model's replace
             warnings.filterwarnings("ignore", message=r"observe\(\): the signals' intersample")
+            # and its names note says when the columns differ from the model's (`_names_note`)
+            warnings.filterwarnings("ignore", message=r"observe\(\): the record's inputs")
             _quiet_jax_callback_log()
             args.func(args)
     except (_UserError, ValueError, TypeError, OSError) as err:

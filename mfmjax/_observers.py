@@ -287,6 +287,22 @@ def _settings_warning(model: Model, signals: Signals) -> None:
             "or built with it (its delays too: model.delays): give the model the data's "
             "(Model.from_coefficients(..., intersample=, delays=)) if those are right",
             stacklevel=_b.user_stacklevel())
+    order = swapped_inputs(model.input_names, signals.input_names)
+    if order:
+        warnings.warn(f"observe(): {order}", stacklevel=_b.user_stacklevel())
+
+
+def swapped_inputs(fitted, given) -> str:
+    """A sentence when the record's inputs are the fitted ones (by name) in another order: the
+    k-th column drives the k-th input, so the result would be for swapped inputs (a fit of
+    -7 % against 75 % on a two-input record); '' otherwise (other names, e.g. the defaults
+    u1, u2 against a file's, are not compared)."""
+    fitted, given = tuple(fitted), tuple(given)
+    if fitted == given or sorted(fitted) != sorted(given) or len(set(fitted)) < len(fitted):
+        return ""
+    return (f"the record's inputs {list(given)} are the fitted {list(fitted)} in another "
+            f"order; the k-th column is taken as the k-th input: reorder the record's columns "
+            f"to {list(fitted)}")
 
 
 def padded_window(signals: Signals, start: int, length: int, bound: int | None = None):

@@ -114,6 +114,11 @@ class Trend(eqx.Module):
                 f"{list(signals.input_names)} but the trend was fitted on {self.n_inputs} "
                 f"{list(self.input_names)}; give a record with the same inputs"
             )
+        from ._observers import swapped_inputs
+
+        order = swapped_inputs(self.input_names, signals.input_names)
+        if order:  # the lines of one input would be removed from another
+            raise ValueError(f"Trend.apply(): {order}")
         t = np.asarray(signals.t)
         y = np.asarray(signals.y) - np.asarray(self.output_line(t))
         u = np.asarray(signals.u) - np.asarray(self.input_lines(t))

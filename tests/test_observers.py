@@ -184,6 +184,29 @@ def test_observe_says_when_the_signals_settings_are_not_the_models():
         mfmjax.observe(true, Signals(y, u, dt=dt, intersample="zoh", delays=[0.2]), (0.3, 6.99))
 
 
+def test_observe_says_when_the_records_inputs_are_the_models_in_another_order():
+    """A model fitted on inputs named (valve, feed) observed on a record whose columns are the
+    same names in the other order: the k-th column drives the k-th input, so the fit is for
+    swapped inputs (-7 % against 75 % in the audit), said now; not for the same order, nor for
+    other names (the defaults u1, u2), which are not compared."""
+    dt = 0.05
+    rng = np.random.default_rng(3)
+    u = np.repeat(rng.standard_normal((40, 2)), 25, axis=0)
+    model = Model.from_coefficients([2.0, 3.0, 1.0], [[2.0], [1.0]], intersample=["zoh"] * 2,
+                                    input_names=["valve", "feed"])
+    y = np.asarray(mfmjax.simulate(model, u, dt=dt))
+    swapped = Signals(y, u[:, ::-1], dt=dt, intersample="zoh", input_names=["feed", "valve"])
+    with pytest.warns(UserWarning, match=r"observe\(\): the record's inputs \['feed', "
+                      r"'valve'\] are the fitted \['valve', 'feed'\] in another order") as caught:
+        fit = mfmjax.compare(model, swapped).fit
+    assert caught[0].filename == __file__ and float(fit) < 90.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for names in (["valve", "feed"], None):
+            assert float(mfmjax.compare(model, Signals(y, u, dt=dt, intersample="zoh",
+                                                       input_names=names)).fit) > 99.9
+
+
 def test_observe_of_an_unstable_model_on_too_long_a_window_says_shorten_it():
     """A pole at +0.02 over 1000 s: the growing mode (e^20) swamps M0, unobservable; the
     advice was to widen the window (which makes it worse); 200 s of the same record work."""

@@ -89,6 +89,18 @@ def test_trend_apply_to_a_second_record_and_restore():
         trend.restore(out.t, out.y[:-1])
     with pytest.raises(ValueError, match=r"Trend.apply\(\): the record has 1 input"):
         trend.apply(Signals(x2[:, 0], x2[:, 1], dt=later.dt))
+    # named inputs in another order: each input's line would go to the other (a column 0.62
+    # off, unsaid); refused. The same names in order, or other names, are taken as given.
+    named = lambda names: Signals(x2[:, 0], x2[:, 1:], dt=later.dt, t0=later.t0,  # noqa: E731
+                                  input_names=names)
+    _, by_name = mfmjax.detrend(Signals(np.asarray(sig.y), np.asarray(sig.u), dt=sig.dt,
+                                        t0=sig.t0, input_names=["valve", "feed"]))
+    with pytest.raises(ValueError, match=r"Trend.apply\(\): the record's inputs \['feed', "
+                       r"'valve'\] are the fitted \['valve', 'feed'\] in another order"):
+        by_name.apply(named(["feed", "valve"]))
+    np.testing.assert_array_equal(np.asarray(by_name.apply(named(["valve", "feed"])).u),
+                                  np.asarray(out.u))
+    by_name.apply(named(["a", "b"]))
 
 
 def test_detrend_boundary():
