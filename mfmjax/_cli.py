@@ -240,7 +240,10 @@ def _columns(args) -> list[str]:
     return inputs
 
 
-def _load_signals(args):
+def _load_signals(args, saved=None):
+    """(record as the arguments read it, the `Trend` --detrend removed or None). `saved`: the
+    identification data's lines saved with the model (`_saved_lines`), removed instead of
+    lines fitted on this file."""
     from ._signals import Signals
 
     inputs = _columns(args)
@@ -270,7 +273,10 @@ def _load_signals(args):
         from ._prepare import detrend
 
         part = _identify_part(args, sig) if getattr(args, "identify_window", None) else None
-        if part is None:
+        if saved is not None:  # validate/report: the model's own lines
+            trend = saved
+            sig = trend.apply(sig, offset=bool(args.offset))
+        elif part is None:
             sig, trend = detrend(sig, args.detrend, offset=bool(args.offset))
         else:  # the lines from the identification data only, removed from the whole record:
             # fitted over the whole file they also saw the --validate-window's data
@@ -281,10 +287,29 @@ def _load_signals(args):
         text = ", ".join(f"{n} {float(c):.6g}" + (f"{float(s):+.6g}*(t-{trend.t0:g})"
                                                     if trend.kind == "linear" else "")
                          for n, c, s in lines)
-        print(f"note: --detrend {args.detrend}: removed {text}"
-              + (f" (fitted on --identify-window {part[0]:g},{part[1]:g})" if part else "")
-              + "; the model is for deviations from these lines", file=sys.stderr)
-    return sig
+        where = (" (the model's identification data's, saved with it)" if saved is not None
+                 else f" (fitted on --identify-window {part[0]:g},{part[1]:g})" if part
+                 else " (fitted on this file: the model file holds no lines of this kind)"
+                 if hasattr(args, "model") else "")
+        print(f"note: --detrend {args.detrend}: removed {text}{where}; the model is for "
+              "deviations from these lines", file=sys.stderr)
+        return sig, trend
+    return sig, None
+
+
+def _saved_lines(path: str, args):
+    """The lines --detrend removed from the model's identification data (`save_model`'s
+    record), when this command detrends the same way; else None."""
+    from ._prepare import Trend
+
+    if not getattr(args, "detrend", None):
+        return None
+    with open(path, "rb") as fh:  # load_model has read and checked it
+        saved = json.loads(fh.read().decode("utf-8")).get("record")
+    trend = saved.get("trend") if isinstance(saved, dict) else None
+    if not isinstance(trend, dict) or trend.get("kind") != args.detrend:
+        return None
+    return Trend.from_dict(trend)
 
 
 def _offset_note(sig) -> None:
@@ -326,9 +351,11 @@ def _names_note(model, sig) -> None:
               f"{', '.join(sig.input_names)}: check the columns and their order", file=sys.stderr)
 
 
-def _record(args, sig) -> dict:
-    """How the identification data were read, saved with the model (`save_model`)."""
-    return {"dt": sig.host_dt, "detrend": getattr(args, "detrend", None)}
+def _record(args, sig, trend) -> dict:
+    """How the identification data were read, saved with the model (`save_model`): with
+    --detrend, the lines removed (validate and report remove the same ones)."""
+    out = {"dt": sig.host_dt, "detrend": getattr(args, "detrend", None)}
+    return out if trend is None else {**out, "trend": trend.to_dict()}
 
 
 def _record_note(path: str, args, sig) -> None:
@@ -373,7 +400,7 @@ def _model_settings_note(args, model) -> None:
 def _cmd_identify(args):
     import mfmjax
 
-    full = _load_signals(args)
+    full, trend = _load_signals(args)
     ident = _identify_part(args, full)
     sig = full if ident is None else full.window(*ident)
     m = _ints(args.m, "m") if args.m else [0] * sig.n_inputs
@@ -391,7 +418,7 @@ def _cmd_identify(args):
 
         saved = report["model"] if report else model
         save_model(saved, args.save, covariance=usable_covariance(saved, cov),
-                   record=_record(args, sig))
+                   record=_record(args, sig, trend))
     _offset_note(full)  # after the work: a user error stays one line
     _no_inputs_note(args)
     if args.json:
@@ -784,7 +811,7 @@ def _cmd_search(args):
 
     grid_delays = args.delays
     args.delays = None
-    sig = _load_signals(args)
+    sig, trend = _load_signals(args)
     K = sig.n_inputs
     kwargs = dict(
         n=_grid(args.n, "n", True),
@@ -861,7 +888,7 @@ def _cmd_search(args):
 
         saved = report["model"] if report else result.best()
         save_model(saved, args.save, covariance=usable_covariance(saved, cov),
-                   record=_record(args, sig))
+                   record=_record(args, sig, trend))
     validation = _validation_report(args, sig, report["model"] if report else result.best())
     if not args.estimate:  # estimate's notes say it, with its own decision
         _offset_note(sig)  # after the work: a user error stays one line
@@ -919,7 +946,7 @@ def _cmd_validate(args):
     import mfmjax
 
     model = mfmjax.load_model(_model_path(args))
-    sig = _load_signals(args)
+    sig = _load_signals(args, _saved_lines(_model_path(args), args))[0]
     window = _window(args.window, "window") if args.window else None
     ob = _observer_window(args.observer_window, window or _whole(sig), sig,
                           window and "--window")
@@ -981,7 +1008,7 @@ def _cmd_report(args):
     args.model = _model_path(args)
     model = mfmjax.load_model(args.model)
     cov, note = an.saved_covariance(args.model, model)
-    sig = _load_signals(args)
+    sig = _load_signals(args, _saved_lines(args.model, args))[0]
     window = _window(args.window, "window") if args.window else None
     ob = _observer_window(args.observer_window, window or _whole(sig), sig,
                           window and "--window")

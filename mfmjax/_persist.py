@@ -81,7 +81,7 @@ def atomic_write(path, data: bytes) -> None:
             os.close(dfd)
 
 
-RECORD_KEYS = ("dt", "detrend")  # how the identification data were read (`save_model`)
+RECORD_KEYS = ("dt", "detrend", "trend")  # how the identification data were read (`save_model`)
 
 
 def save_model(model: Model, path, *, covariance=None, record=None) -> None:
@@ -92,7 +92,9 @@ def save_model(model: Model, path, *, covariance=None, record=None) -> None:
     `load_model` ignores it, and files without it stay valid. `record` (optional): how the
     identification data were read, `{"dt": step, "detrend": None | "linear" | "constant"}`
     (the CLI stores it; `mfmjax validate` and `report` compare it with their data's and say
-    where it differs: a model of detrended data on raw data gave fit -23434 %)."""
+    where it differs: a model of detrended data on raw data gave fit -23434 %), and with
+    --detrend `"trend"`: the removed lines (`Trend.to_dict`), which validate and report then
+    remove from their data instead of fitting lines of their own."""
     require_x64("save_model")
     if not isinstance(model, Model):
         raise TypeError(f"save_model(): model must be a Model (e.g. from identify or "
@@ -114,12 +116,24 @@ def save_model(model: Model, path, *, covariance=None, record=None) -> None:
         if (not isinstance(record, dict) or set(record) - set(RECORD_KEYS)
                 or ("dt" in record and not (isinstance(dt, (int, float)) and not isinstance(
                     dt, bool) and math.isfinite(dt) and dt > 0))
-                or record.get("detrend") not in (None, "linear", "constant")):
+                or record.get("detrend") not in (None, "linear", "constant")
+                or not _trend_ok(record.get("trend"), record.get("detrend"))):
             raise ValueError(f"save_model(): record must be a dict with keys from {RECORD_KEYS}: "
-                             "dt a finite step > 0, detrend None, 'linear' or 'constant' "
-                             f"(got {record!r})")
+                             "dt a finite step > 0, detrend None, 'linear' or 'constant', "
+                             f"trend Trend.to_dict() of that kind (got {record!r})")
         doc["record"] = {k: (float(v) if k == "dt" else v) for k, v in record.items()}
     atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
+
+
+def _trend_ok(trend, kind) -> bool:
+    if trend is None:
+        return True
+    from ._prepare import Trend
+
+    try:
+        return Trend.from_dict(trend).kind == kind
+    except (ValueError, TypeError, AttributeError):
+        return False
 
 
 def load_covariance(path, model: Model | None = None):

@@ -124,6 +124,38 @@ class Trend(eqx.Module):
         u = np.asarray(signals.u) - np.asarray(self.input_lines(t))
         return _detrended(signals, y, u, offset, self.note)
 
+    def to_dict(self) -> dict:
+        """The lines as plain numbers (JSON-ready; `Trend.from_dict` reads them back)."""
+        line = jax.device_get(self)
+        return {"kind": self.kind, "t0": self.t0, "y_level": float(line.y_level),
+                "y_slope": float(line.y_slope),
+                "u_level": [float(v) for v in np.asarray(line.u_level)],
+                "u_slope": [float(v) for v in np.asarray(line.u_slope)],
+                "output_name": self.output_name, "input_names": list(self.input_names),
+                "note": self.note}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Trend:
+        """A `Trend` from `to_dict`'s description (a ValueError naming what is wrong)."""
+        keys = ("kind", "t0", "y_level", "y_slope", "u_level", "u_slope", "output_name",
+                "input_names", "note")
+        try:
+            nums = [np.asarray(d[k], dtype=np.float64).reshape(-1) for k in keys[1:6]]
+            K = nums[3].size
+            ok = (set(d) == set(keys) and d["kind"] in DETREND_KINDS
+                  and all(np.all(np.isfinite(v)) for v in nums)
+                  and [v.size for v in nums] == [1, 1, 1, K, K]
+                  and len(d["input_names"]) == K)
+        except (KeyError, TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"Trend.from_dict(): expected the keys {list(keys)} with finite "
+                             f"levels and slopes, one per input (got {d!r})")
+        levels = (nums[1].reshape(()), nums[2].reshape(()), nums[3], nums[4])
+        return cls(*jax.device_put(levels), kind=d["kind"], t0=float(nums[0][0]),
+                   output_name=str(d["output_name"]),
+                   input_names=tuple(str(n) for n in d["input_names"]), note=str(d["note"]))
+
     def restore(self, t, y) -> jax.Array:
         """A simulated output of the detrended model back in the record's units: y + $\\ell_y(t)$.
 

@@ -548,7 +548,7 @@ def test_audit_messages_name_the_problem(data, fitted, tmp_path):
                                                 r"not exist"):
         mfmjax.save_model(fitted, missing)
     with pytest.raises(ValueError, match=r"save_model\(\): record must be a dict with keys "
-                                         r"from \('dt', 'detrend'\)"):
+                                         r"from \('dt', 'detrend', 'trend'\)"):
         mfmjax.save_model(fitted, tmp_path / "m.json", record={"dt": 1.0, "units": "s"})
     for bad in ({"dt": None}, {"dt": -1.0}, {"detrend": "cubic"}):
         with pytest.raises(ValueError, match=r"save_model\(\): record must be a dict"):
