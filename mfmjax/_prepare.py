@@ -337,6 +337,15 @@ def resample_arrays(fn: str, t, y, u, *, dt, intersample="foh", output_rule: str
     if not end > start:
         raise ValueError(f"{fn}(): the output and the inputs share no time span (output "
                          f"{t[0]:g}..{t[-1]:g}; latest start {start:g}, earliest end {end:g})")
+    cut = [f"{name!r} {t_k[0]:g}..{t_k[-1]:g}" for name, t_k in
+           [(output_name, t)] + [(s[0], s[1]) for s in series]
+           if t_k[0] > t[0] + dt or t_k[-1] < t[-1] - dt]
+    if cut:  # a column reported only on change (a historian's) ends at its last change
+        warnings.warn(f"{fn}(): the record is cut to {start:g}..{end:g}, the span every "
+                      f"column covers (output {t[0]:g}..{t[-1]:g}; {', '.join(cut)}); a "
+                      "column stored only when it changes holds its last value: fill it "
+                      "forward to the record's end first if that is what it means",
+                      stacklevel=_b.user_stacklevel())
     steps = int(np.floor((end - start) / dt + _GRID_RTOL))
     if steps < 1:
         raise ValueError(f"{fn}(): dt={dt:g} is coarser than the record ({start:g}..{end:g}, "
