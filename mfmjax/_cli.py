@@ -406,8 +406,8 @@ def _cmd_identify(args):
     m = _ints(args.m, "m") if args.m else [0] * sig.n_inputs
     structure = mfmjax.Structure(args.n, m).for_inputs(sig.n_inputs)
     mf = mfmjax.ModulatingFunction(args.N, args.M, args.h)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with warnings.catch_warnings(record=True) as caught:  # the status is in the summary
+        warnings.simplefilter("always")
         model = mfmjax.identify(sig, structure, mf)
     report = _refine_report(sig, model, bool(args.delays)) if args.refine else None
     validation = _validation_report(args, full, report["model"] if report else model)
@@ -421,6 +421,9 @@ def _cmd_identify(args):
                    record=_record(args, sig, trend))
     _offset_note(full)  # after the work: a user error stays one line
     _no_inputs_note(args)
+    for w in caught:  # what the status alone does not say (the inputs that are dependent)
+        if str(w.message).startswith("identify(): the inputs"):
+            print(f"warning: {_first_line(w.message)}", file=sys.stderr)
     if args.json:
         out = model.to_dict()
         if report:

@@ -27,6 +27,27 @@ ARGS = ["--output", "temp", "--inputs", "u1,u2", "--n", "3", "--m", "1,0", "--N"
         "--M", "5", "--h", "2.0", "--time", "t", "--intersample", "foh,zoh"]
 
 
+def test_identify_says_when_its_inputs_are_linearly_dependent(csv_file, tmp_path, capsys):
+    """The CLI silenced identify's warnings, so two columns of one signal (a valve in 0-1 and
+    in %) gave status ill_conditioned and gains 2248.7 and -22.47, but not why; the warning
+    that names the inputs is now printed (one line, after the results)."""
+    lines = csv_file.read_text().splitlines()
+    rows = [line.split(",") for line in lines[1:]]
+    dep = tmp_path / "dep.csv"
+    dep.write_text("t,temp,u1,u1_pct\n" + "".join(
+        f"{r[0]},{r[1]},{r[2]},{100.0 * float(r[2])!r}\n" for r in rows))
+    argv = ["identify", str(dep), *ARGS]
+    argv[argv.index("u1,u2")] = "u1,u1_pct"
+    argv[argv.index("foh,zoh")] = "foh,foh"  # one signal, one rule
+    assert main(argv) == 0
+    cap = capsys.readouterr()
+    assert "ill_conditioned" in cap.out
+    assert ("warning: identify(): the inputs ['u1', 'u1_pct'] are linearly dependent"
+            in cap.err), cap.err
+    assert main(["identify", str(csv_file), *ARGS]) == 0
+    assert "linearly dependent" not in capsys.readouterr().err
+
+
 def test_identify_json(csv_file, capsys):
     assert main(["identify", str(csv_file), *ARGS, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
