@@ -141,8 +141,8 @@ def _record_window(text: str, name: str, sig) -> tuple[float, float]:
     w = _window(text, name)
     end = sig.t0 + (sig.n_samples - 1) * sig.dt
     if w[0] < sig.t0 - 0.5 * sig.dt or w[1] > end + 0.5 * sig.dt:
-        raise _UserError(f"--{name} {w[0]:g},{w[1]:g} must lie inside the record "
-                         f"[{sig.t0:g}, {end:g}]")
+        raise _UserError(f"--{name} {w[0]:.15g},{w[1]:.15g} must lie inside the record "
+                         f"[{sig.t0:.15g}, {end:.15g}]")
     return w
 
 
@@ -164,13 +164,13 @@ def _observer_window(given, w, sig, option: str | None) -> float:
     if given is not None:  # checked here, in the CLI's terms (the library names its argument)
         samples = round(given / sig.dt) + 1
         if samples < MIN_WINDOW or given > (w[1] - w[0]) * (1 + 1e-12):
-            where = f"{option} {w[0]:g},{w[1]:g}" if option else "the record"
+            where = f"{option} {w[0]:.15g},{w[1]:.15g}" if option else "the record"
             raise _UserError(f"--observer-window {given:g} must hold at least {MIN_WINDOW} "
                              f"samples (>= {(MIN_WINDOW - 1) * sig.dt:g} at dt = {sig.dt:g}) "
                              f"and fit inside {where} ({w[1] - w[0]:g} long)")
         return given
     if round(share * (w[1] - w[0]) / sig.dt) + 1 < MIN_WINDOW:
-        what = (f"{option} {w[0]:g},{w[1]:g}" if option else
+        what = (f"{option} {w[0]:.15g},{w[1]:.15g}" if option else
                 f"the record ({sig.n_samples} samples)")
         raise _UserError(f"{what} is too short: its first {share:.0%} (the initial-state "
                          f"observer) needs at least {MIN_WINDOW} samples; widen it to at least "
@@ -215,9 +215,9 @@ def _validation_report(args, sig, model) -> dict | None:
 
 def _print_validation(v: dict | None) -> None:
     if v is not None and v.get("failed"):
-        print(f"validation on [{v['window'][0]:g}, {v['window'][1]:g}]: none, {v['failed']}")
+        print(f"validation on [{v['window'][0]:.15g}, {v['window'][1]:.15g}]: none, {v['failed']}")
     elif v is not None:
-        print(f"validation on [{v['window'][0]:g}, {v['window'][1]:g}]: fit {v['fit']:.2f} %  "
+        print(f"validation on [{v['window'][0]:.15g}, {v['window'][1]:.15g}]: fit {v['fit']:.2f} %  "
               f"E {v['E']:.4e}  (state from the observer over the first "
               f"{v['observer_window']:g}" + (
                   "; WARNING: the window overlaps the identification data)"
@@ -284,11 +284,11 @@ def _load_signals(args, saved=None):
             sig = trend.apply(sig, offset=bool(args.offset))
         lines = [(sig.output_name, trend.y_level, trend.y_slope)] + list(
             zip(sig.input_names, trend.u_level, trend.u_slope))
-        text = ", ".join(f"{n} {float(c):.6g}" + (f"{float(s):+.6g}*(t-{trend.t0:g})"
+        text = ", ".join(f"{n} {float(c):.6g}" + (f"{float(s):+.6g}*(t-{trend.t0:.15g})"
                                                     if trend.kind == "linear" else "")
                          for n, c, s in lines)
         where = (" (the model's identification data's, saved with it)" if saved is not None
-                 else f" (fitted on --identify-window {part[0]:g},{part[1]:g})" if part
+                 else f" (fitted on --identify-window {part[0]:.15g},{part[1]:.15g})" if part
                  else " (fitted on this file: the model file holds no lines of this kind)"
                  if hasattr(args, "model") else "")
         print(f"note: --detrend {args.detrend}: removed {text}{where}; the model is for "
@@ -898,8 +898,8 @@ def _cmd_search(args):
     _no_inputs_note(args)
     _delays_grid_note(grid_delays, K)
     if held_back:
-        print(f"note: candidates ranked by {args.score} on --identify-window {ident[0]:g},"
-              f"{ident[1]:g}, not on the --validate-window data (give --validate to rank on "
+        print(f"note: candidates ranked by {args.score} on --identify-window {ident[0]:.15g},"
+              f"{ident[1]:.15g}, not on the --validate-window data (give --validate to rank on "
               "another window)", file=sys.stderr)
     if args.json:
         out = result.to_dict(top=args.top)
@@ -923,7 +923,7 @@ def _cmd_search(args):
                   f"(compile {result.compile_s:.1f} s, run {result.run_s:.1f} s)"))
         if not args.estimate:
             w = kwargs.get("validate") or _whole(sig)
-            print(f"E and fit % on [{w[0]:g}, {w[1]:g}], the state from the observer over the "
+            print(f"E and fit % on [{w[0]:.15g}, {w[1]:.15g}], the state from the observer over the "
                   f"first {kwargs['observer_window']:g}")
         print(result.table(args.top))
         if report and "summary" in report:
@@ -971,7 +971,7 @@ def _cmd_validate(args):
     if args.json:
         _print_json(res)
     else:
-        print(f"window        {res['window'][0]:g} .. {res['window'][1]:g}")
+        print(f"window        {res['window'][0]:.15g} .. {res['window'][1]:.15g}")
         print(f"E (eq. 17)    {res['E']:.6e}")
         print(f"fit           {res['fit_note'] if constant else f'{fit:.2f} %'}")
         print(f"observer      the first {ob:g} of the window (x0 from those samples only)")

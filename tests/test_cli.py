@@ -48,6 +48,21 @@ def test_identify_says_when_its_inputs_are_linearly_dependent(csv_file, tmp_path
     assert "linearly dependent" not in capsys.readouterr().err
 
 
+def test_times_of_an_epoch_record_print_in_full(csv_file, tmp_path, capsys):
+    """Windows and the detrend lines' t0 printed with %g read "validation on [1.7e+09,
+    1.7e+09]" and "(t-1.7e+09)" for epoch-second times; now to 15 digits."""
+    lines = csv_file.read_text().splitlines()
+    epoch = tmp_path / "epoch.csv"
+    epoch.write_text(lines[0] + "\n" + "".join(
+        f"{1.7e9 + float(r.split(',')[0])!r},{r.split(',', 1)[1]}\n" for r in lines[1:]))
+    assert main(["identify", str(epoch), *ARGS, "--identify-window", "1700000000,1700000012",
+                 "--validate-window", "1700000012.5,1700000019.99", "--detrend",
+                 "constant"]) == 0
+    cap = capsys.readouterr()
+    assert "validation on [1700000012.5, 1700000019.99]" in cap.out, cap.out
+    assert "(fitted on --identify-window 1700000000,1700000012)" in cap.err, cap.err
+
+
 def test_identify_json(csv_file, capsys):
     assert main(["identify", str(csv_file), *ARGS, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
