@@ -562,6 +562,13 @@ class Signals(eqx.Module):
                 raise ValueError(f"{source}: resample= needs a time column (time=...) and no dt; "
                                  "it reads the record at its sample times")
             t_all = arrays[time]
+            for c in [output, *inputs, time]:  # missing is NaN or a blank cell, not inf
+                if np.isinf(arrays[c]).any():
+                    raise ValueError(f"{source}: column {c!r} has an inf sample at row "
+                                     f"{int(np.argmax(np.isinf(arrays[c])))} (0-based); "
+                                     "resample drops missing samples (NaN, blank) but inf is "
+                                     "a value (an overflow upstream?): blank it if it is "
+                                     "missing")
             kept = {c: np.isfinite(arrays[c]) & np.isfinite(t_all) for c in [output, *inputs]}
             for c, keep in kept.items():  # a missing sample is dropped and interpolated across
                 if keep.sum() < 2:

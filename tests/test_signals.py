@@ -204,4 +204,9 @@ def test_missing_sample_with_and_without_resample(tmp_path):
                          intersample="foh")  # the unused text column 'tag' is not read
     np.testing.assert_array_equal(np.asarray(s.y), [1, 2, 3, 4, 5])
     np.testing.assert_array_equal(np.asarray(s.u)[:, 0], [2, 5, 4, 5, 6])
+    # inf is a value, not a missing sample: refused by row (it was interpolated across, unsaid)
+    p = _write(tmp_path, "t,temp,fuel\n0,1,2\n1,2,5\n2,inf,4\n3,4,5\n4,5,6\n")
+    with pytest.raises(ValueError, match=r"column 'temp' has an inf sample at row 2 "
+                                         r"\(0-based\); resample drops missing samples"):
+        Signals.from_csv(p, output="temp", inputs=["fuel"], time="t", resample=1.0)
 
