@@ -210,3 +210,14 @@ def test_missing_sample_with_and_without_resample(tmp_path):
                                          r"\(0-based\); resample drops missing samples"):
         Signals.from_csv(p, output="temp", inputs=["fuel"], time="t", resample=1.0)
 
+
+
+def test_a_time_column_with_a_missing_time_is_refused_by_row(tmp_path):
+    """It said only "contains NaN or inf; clean it first": now the row, and the way round it
+    (resample= drops rows without a time)."""
+    p = _write(tmp_path, "t,temp,fuel\n0,1,2\n1,2,5\n,3,4\n3,4,5\n4,5,6\n")
+    with pytest.raises(ValueError, match=r"the time column has a NaN or inf at row 2 "
+                                         r"\(0-based\); drop that row .*resample=DT"):
+        Signals.from_csv(p, output="temp", inputs=["fuel"], time="t")
+    s = Signals.from_csv(p, output="temp", inputs=["fuel"], time="t", resample=1.0)
+    np.testing.assert_array_equal(np.asarray(s.y), [1, 2, 3, 4, 5])
