@@ -117,21 +117,24 @@ def save_model(model: Model, path, *, covariance=None, record=None) -> None:
                 or ("dt" in record and not (isinstance(dt, (int, float)) and not isinstance(
                     dt, bool) and math.isfinite(dt) and dt > 0))
                 or record.get("detrend") not in (None, "linear", "constant")
-                or not _trend_ok(record.get("trend"), record.get("detrend"))):
+                or not _trend_ok(record.get("trend"), record.get("detrend"),
+                                 model.n_inputs)):
             raise ValueError(f"save_model(): record must be a dict with keys from {RECORD_KEYS}: "
                              "dt a finite step > 0, detrend None, 'linear' or 'constant', "
-                             f"trend Trend.to_dict() of that kind (got {record!r})")
+                             f"trend Trend.to_dict() of that kind and the model's inputs "
+                             f"(got {record!r})")
         doc["record"] = {k: (float(v) if k == "dt" else v) for k, v in record.items()}
     atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
 
 
-def _trend_ok(trend, kind) -> bool:
+def _trend_ok(trend, kind, n_inputs: int) -> bool:
     if trend is None:
         return True
     from ._prepare import Trend
 
     try:
-        return Trend.from_dict(trend).kind == kind
+        lines = Trend.from_dict(trend)
+        return lines.kind == kind and lines.n_inputs == n_inputs
     except (ValueError, TypeError, AttributeError):
         return False
 

@@ -143,6 +143,7 @@ class Trend(eqx.Module):
             nums = [np.asarray(d[k], dtype=np.float64).reshape(-1) for k in keys[1:6]]
             K = nums[3].size
             ok = (set(d) == set(keys) and d["kind"] in DETREND_KINDS
+                  and isinstance(d["input_names"], (list, tuple))
                   and all(np.all(np.isfinite(v)) for v in nums)
                   and [v.size for v in nums] == [1, 1, 1, K, K]
                   and len(d["input_names"]) == K)
@@ -337,9 +338,13 @@ def resample_arrays(fn: str, t, y, u, *, dt, intersample="foh", output_rule: str
     if not end > start:
         raise ValueError(f"{fn}(): the output and the inputs share no time span (output "
                          f"{t[0]:g}..{t[-1]:g}; latest start {start:g}, earliest end {end:g})")
-    cut = [f"{name!r} {t_k[0]:g}..{t_k[-1]:g}" for name, t_k in
-           [(output_name, t)] + [(s[0], s[1]) for s in series]
-           if t_k[0] > t[0] + dt or t_k[-1] < t[-1] - dt]
+    # more than a step of the grid and of the column's own clock (an input logged at 1 Hz
+    # under a 0.1 s grid ends up to 1 s before the output without anything cut off)
+    cut = []
+    for name, t_k in [(output_name, t)] + [(s[0], s[1]) for s in series]:
+        lag = max(dt, float(np.median(np.diff(t_k)))) if t_k.size > 1 else dt
+        if t_k[0] > t[0] + lag or t_k[-1] < t[-1] - lag:
+            cut.append(f"{name!r} {t_k[0]:g}..{t_k[-1]:g}")
     if cut:  # a column reported only on change (a historian's) ends at its last change
         warnings.warn(f"{fn}(): the record is cut to {start:g}..{end:g}, the span every "
                       f"column covers (output {t[0]:g}..{t[-1]:g}; {', '.join(cut)}); a "

@@ -354,7 +354,7 @@ class Signals(eqx.Module):
                 raise ValueError(
                     f"Signals(): the time column has a NaN or inf at row "
                     f"{int(np.argmin(np.isfinite(t)))} (0-based); drop that row (from_csv: "
-                    "resample=DT or --resample DT drops rows without a time)")
+                    "resample=DT or --resample DT drops rows whose time is blank or NaN)")
             steps = np.diff(t)
             if T < 2 or np.any(steps <= 0):
                 bad = int(np.argmax(steps <= 0)) + 1 if T >= 2 else 0

@@ -198,14 +198,21 @@ def test_resample_cubic_output_exact_for_a_cubic():
 def test_resample_inputs_on_their_own_grids():
     t = np.linspace(0.0, 10.0, 101)
     ta, tb = np.linspace(-1.0, 9.0, 41), np.linspace(0.5, 12.0, 24)
-    # the record is cut to the span all three share, and says so (a column stored only on
-    # change ends at its last change: the record was cut there unsaid)
+    # the record is cut to the span all three share, and says so where a column ends (or
+    # starts) more than a step of the grid and of its own clock inside the output's span
+    # (a column stored only on change ends at its last change: the record was cut there
+    # unsaid); 'valve' starts one of its own steps (0.5) late: not named
     with pytest.warns(UserWarning, match=r"resample\(\): the record is cut to 0.5..9, the span "
-                      r"every column covers \(output 0..10; 'heat' -1..9, 'valve' 0.5..12\)"):
+                      r"every column covers \(output 0..10; 'heat' -1..9\); a column"):
         sig = mfmjax.resample(t, np.sin(t), {"heat": (ta, 3.0 * ta),
                                              "valve": (tb, np.arange(24.0))},
                               dt=0.1, intersample=("foh", "zoh"), output_name="temp")
     grid = np.asarray(sig.t)
+    # an input on a slower clock of its own loses less than its own step: nothing to say
+    slow = np.arange(0.5, 10.0, 1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mfmjax.resample(t, np.sin(t), {"heat": (slow, np.cos(slow))}, dt=0.1)
     assert sig.t0 == 0.5 and grid[-1] <= 9.0 + 1e-12  # the span all three share
     assert sig.input_names == ("heat", "valve") and sig.output_name == "temp"
     np.testing.assert_allclose(np.asarray(sig.u)[:, 0], 3.0 * grid, rtol=REL)  # foh of a line
@@ -377,6 +384,10 @@ def test_cli_validate_and_report_remove_the_models_own_lines(irregular_csv, caps
     with pytest.raises(ValueError, match=r"save_model\(\): record must be"):
         mfmjax.save_model(mfmjax.load_model(saved), tmp_path / "x.json",
                           record={"detrend": "constant", "trend": record["trend"]})
+    one = {**record["trend"], "u_level": [1.0], "u_slope": [0.0], "input_names": ["x"]}
+    with pytest.raises(ValueError, match=r"save_model\(\): record must be"):  # 1 input of 2
+        mfmjax.save_model(mfmjax.load_model(saved), tmp_path / "x.json",
+                          record={"detrend": "linear", "trend": one})
     with pytest.raises(ValueError, match=r"Trend.from_dict\(\): expected the keys"):
         mfmjax.Trend.from_dict({**record["trend"], "u_level": [1.0]})
 
