@@ -395,6 +395,35 @@ def test_estimate_compiles_its_stages_while_the_search_runs(noisy, monkeypatch, 
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def test_estimate_stages_run_on_the_record_bucket(noisy, monkeypatch):
+    """Every stage after the search (SRIVC and output error on the fit parts and on the
+    estimation data, the hold-out observer on each block) gets the whole record's bucket
+    (1500 samples: 1536), so each stage is one program, not one per share of the record
+    (the fit parts had 1024, the hold-out blocks 512: on a 1200-sample two-input record 9
+    programs and 12.6-12.8 s for a first call against 6 and 10.1-10.4 s,
+    `benchmarks/estimate_first_call.py`). Read from the buckets the stages are given."""
+    from mfmjax import _estimate
+
+    sig, _ = noisy
+    buckets = []
+    staged, mapped = _estimate._staged_many, _estimate.map_pairs
+
+    def staged_spy(stage, records, models, shift="start", **kw):
+        buckets.append(("stage", kw.get("bucket")))
+        return staged(stage, records, models, shift=shift, **kw)
+
+    def mapped_spy(fn, records, models, **kw):
+        if fn is _estimate._observed:
+            buckets.append(("observer", int(kw["length"])))
+        return mapped(fn, records, models, **kw)
+
+    monkeypatch.setattr(_estimate, "_staged_many", staged_spy)
+    monkeypatch.setattr(_estimate, "map_pairs", mapped_spy)
+    mfmjax.estimate(sig, **GRID)
+    assert {kind for kind, _ in buckets} == {"stage", "observer"}, buckets
+    assert {b for _, b in buckets} == {1536}, buckets
+
+
 def test_estimate_batch_refuses_mixed_layouts(noisy):
     sig, _ = noisy
     short = mfmjax.Signals(sig.y[:-5], sig.u[:-5], dt=DT, intersample=["zoh"])
