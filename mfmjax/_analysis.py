@@ -387,7 +387,10 @@ def _step_program(base, theta, u, cov, dt):
     def f(th):
         m = with_parameters(base, th)
         m = eqx.tree_at(lambda q: q.offset, m, jnp.zeros_like(m.offset))
-        y, _, _ = simulate_status(m, u, jnp.zeros(base.n), dt)
+        y, _, status = simulate_status(m, u, jnp.zeros(base.n), dt)
+        # an overflowing response is frozen at its last finite state: NaN, so that
+        # `step_response` raises (a flat 5e149 came back for a pole at +1 over 400 s)
+        y = jnp.where(status == 0, y, jnp.nan)
         return y[1:]  # y at t_j - dt = the step response at j dt, j = 0..T-1
     return _value_and_std(f, theta, cov)
 

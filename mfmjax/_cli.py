@@ -545,7 +545,9 @@ def _online_config(args, K: int, dt: float, names):
     except ValueError as err:
         if args.time and "whole number" in str(err):  # a jittered time column
             raise _UserError(f"{err}; dt={dt:g} is the median step of --time {args.time}: "
-                             "give --dt with the sampling interval") from None
+                             "give --dt with the sampling interval if the steps jitter, or "
+                             "set interval in --config in the time column's unit (a "
+                             "multiple of dt)") from None
         raise
     _check_memory(config)
     return config, given
@@ -615,7 +617,16 @@ def _cmd_online(args):
         t = cols[args.time]
         if not np.all(np.isfinite(t)):
             raise _UserError(f"--time: column {args.time!r} has a NaN or inf time")
-        dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+        if t.size < 2:
+            raise _UserError(f"--time: column {args.time!r} has {t.size} row(s), too few to "
+                             "read the sampling interval from; give more samples")
+        back = np.flatnonzero(np.diff(t) <= 0)
+        if back.size:  # said here by row, not as a negative dt or an update() chunk sample
+            i = int(back[0]) + 1
+            raise _UserError(f"--time: column {args.time!r} does not increase at data row "
+                             f"{i + 1} (t={t[i]:.15g} after t={t[i - 1]:.15g}); sort the file "
+                             "by time and drop repeated rows")
+        dt = float(np.median(np.diff(t)))
     elif args.dt:
         dt = args.dt
         t = np.arange(y.size) * dt

@@ -121,7 +121,10 @@ class Model(eqx.Module):
         if input_names is not None and len(input_names) != K:
             raise ValueError(f"Model.from_coefficients(): input_names needs one name per input of "
                              f"b ({K}; got {list(input_names)})")
-        intersample = tuple(intersample) if intersample is not None else ("foh",) * K
+        if isinstance(intersample, str):
+            intersample = (intersample,) * K
+        intersample = (tuple(str(v) if isinstance(v, str) else v for v in intersample)
+                       if intersample is not None else ("foh",) * K)  # np.str_ -> str
         if len(intersample) != K or any(s not in ("zoh", "foh") for s in intersample):
             raise ValueError(
                 f"Model.from_coefficients(): intersample needs {K} entries of 'zoh'/'foh'"

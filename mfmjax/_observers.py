@@ -15,6 +15,7 @@ $M_0$ is equilibrated before it is solved, and its conditioning flags unobservab
 from __future__ import annotations
 
 import math
+import types
 import warnings
 
 import equinox as eqx
@@ -180,7 +181,8 @@ def checked(obs: Observation, fn: str, model: Model | None = None,
     that mode swamps M0: a shorter window)."""
     if not isinstance(obs.status, jax.core.Tracer):
         st = int(obs.status)
-        if st & Status.OVERFLOW:
+        # both bits: a singular M0 gave a non-finite x0 (the OVERFLOW bit follows from it)
+        if st & Status.OVERFLOW and not st & Status.UNOBSERVABLE:
             raise ValueError(
                 f"{fn}(): the model's response overflows float64 on this window (unstable "
                 "model); shorten the window"
@@ -334,7 +336,9 @@ def final_state(model: Model, signals: Signals, window=None):
 def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
     r"""Eq. (16): $x(t_j)$ from the last $T_{OB}$ of data before each $t_j$ in `times`.
 
-    All windows have the same length, so this is one vmapped computation.
+    All windows have the same length, so this is one vmapped computation. A window whose
+    observer is unobservable or overflows raises as `observe` does, naming its t_j (under an
+    outer jit/vmap its row is NaN).
     """
     require_x64("moving_final_states")
     if not isinstance(signals, Signals):
@@ -363,8 +367,18 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
     else:  # the record and the windows padded to their buckets: one program per bucket pair
         bound = record_bucket(length)
         y, u, _ = padded_window(signals, 1, length, bound)
-    return _moving(simulation_form(model), y, u, signals.dt, jax.device_put(ends),
-                   np.int32(length), bound)
+    x, status, cond = _moving(simulation_form(model), y, u, signals.dt, jax.device_put(ends),
+                              np.int32(length), bound)
+    if not _b.is_traced(status):  # as observe: an unobservable or overflowing window raises
+        status, cond = np.asarray(status), np.asarray(cond)
+        for j in np.flatnonzero(status)[:1]:
+            try:
+                checked(types.SimpleNamespace(status=status[j], cond=cond[j]),
+                        "moving_final_states", model, (length - 1) * signals.host_dt)
+            except ValueError as err:
+                raise ValueError(f"{err} (T_ob = {T_ob:g}, the window ending at t_j = "
+                                 f"{times[j]:g})") from None
+    return x
 
 
 @jit
@@ -374,7 +388,9 @@ def _moving(model, y, u, dt, ends, length, bound: int):
     forced = forced_response(model, u, dt)  # once for the record, not once per window
     obs = jax.vmap(lambda e: observe_forced(forced, y, dt, e - (length - 1), bound, length,
                                             None, length))(ends)
-    return obs.x_final
+    # a window whose status is not ok gives NaN (under an outer jit nothing can raise)
+    x = jnp.where(obs.status[:, None] == 0, obs.x_final, jnp.nan)
+    return x, obs.status, obs.cond
 
 
 def performance_index(model: Model, signals: Signals, window=None, *, observer_window=None):

@@ -4,7 +4,8 @@ An explicit-state machine (`method.md` section 8): `init(config) -> OnlineState`
 `update(state, t, y, u) -> (OnlineState, OnlineOutputs)`, fed chunks of any size. Time is cut
 into intervals of width `interval` (T); when an interval closes:
 
-1. **Statistics**: the interval is *valid* if all its samples are finite; *steady* if the
+1. **Statistics**: the interval is *valid* if all its samples and their variances are finite
+   (a sample beyond about 1e154 makes its interval invalid, like a NaN); *steady* if the
    variance of the output and of every input over it is below a threshold (default: `steady_rel`
    times the variance of that signal over all valid intervals so far, a data-scaled default;
    or absolute `steady_var`). An **operating point** is the onset of a steady run (a steady
@@ -44,6 +45,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import warnings
 
 import equinox as eqx
 import jax
@@ -59,7 +61,7 @@ from ._padded import padded_forced
 from ._quadrature import edge_padded
 from ._search import plan_search, run_plan, validate_candidate
 from ._signals import INTERSAMPLE, Signals
-from ._status import Status
+from ._status import Status, describe
 
 FORMAT, VERSION = "mfmjax-online", 1
 IMPROVEMENTS = ("window", "delay", "refine", "rank", "damping", "hold", "steady",
@@ -158,6 +160,11 @@ class OnlineConfig(eqx.Module):
         mode = _b.choice(fn, "mode", mode, ("paper", "improved"))
         if improvements is None:
             improvements = IMPROVEMENTS if mode == "improved" else ()
+        elif isinstance(improvements, str):
+            improvements = (improvements,)
+        elif not isinstance(improvements, (list, tuple)):
+            raise TypeError(f"OnlineConfig(): improvements must be a list of names from "
+                            f"{IMPROVEMENTS}, got {improvements!r}")
         elif mode == "paper" and len(improvements):
             raise ValueError("OnlineConfig(): improvements need mode='improved' (paper mode is "
                              f"Algorithm 1 as stated), got improvements={improvements!r}")
@@ -237,7 +244,9 @@ class OnlineConfig(eqx.Module):
             if len(v) != K:
                 raise ValueError(f"OnlineConfig(): {name} needs one entry per input ({K})")
         if any(mode not in INTERSAMPLE for mode in self.intersample):
-            raise ValueError(f"OnlineConfig(): intersample must be one of {INTERSAMPLE}")
+            bad = [mode for mode in self.intersample if mode not in INTERSAMPLE]
+            raise ValueError(f"OnlineConfig(): intersample must be one of {INTERSAMPLE} per "
+                             f"input, got {bad[0]!r}")
         if max(self.h) + max(self.delays) >= n_reident * interval / 2:
             raise ValueError(
                 "OnlineConfig(): h + delay must be below half the re-identification window "
@@ -484,11 +493,12 @@ def _interval_stats(state: OnlineState, j: int):
     c = state.config
     S, K = c.samples, c.n_inputs
     y, u = _take(state, j * S, S)
-    valid = bool(np.all(np.isfinite(y)) and np.all(np.isfinite(u)))
-    if not valid:
-        return valid, False, 0.0, None, None, 0.0
     x = np.column_stack([y, u])
-    var = x.var(axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):  # a sample beyond ~1e154: var inf
+        var = x.var(axis=0) if np.all(np.isfinite(x)) else np.full(x.shape[1], np.nan)
+    valid = bool(np.all(np.isfinite(var)))  # finite samples whose variance is finite too:
+    if not valid:  # one 1e200 once made every later threshold NaN (no operating point, ever)
+        return valid, False, 0.0, None, None, 0.0
     dx = np.diff(x, axis=0)  # white noise: var(dx) = 2 sigma^2; MAD keeps steps out
     nv = (1.4826 * np.median(np.abs(dx - np.median(dx, axis=0)), axis=0)) ** 2 / 2
     n_iv = state.noise[0] + 1
@@ -934,7 +944,8 @@ def _close_interval(state: OnlineState, j: int):
         if j + 1 < w:
             event["action"] = f"waiting: {j + 1} of {w} intervals"
         elif not all(r[0] for r in rows):
-            event["action"] = "skipped: NaN samples in the identification window"
+            event["action"] = ("skipped: NaN, inf or overflowing (beyond 1e154) samples in "
+                               "the identification window")
         elif max(r[3] for r in rows) < c.tr_corr:
             event["action"] = (f"skipped: input-output correlation below tr_corr={c.tr_corr:g}"
                                f" (largest over the window's intervals: "
@@ -947,7 +958,8 @@ def _close_interval(state: OnlineState, j: int):
             E_cur_ok = E_cur is not None and math.isfinite(E_cur)
             event.update(E_current=E_cur if E_cur_ok else None, E_reident=E_best, E_on=on)
             if best is None:
-                event["action"] = "rejected: every candidate was flagged"
+                event["action"] = "rejected: no candidate had status ok" + (
+                    " and poles of damping ratio >= 0.5" if "damping" in c.improvements else "")
             elif not has:
                 new = _as_model(c, best, 1, 1, op_time)
                 event.update(action="first model")
@@ -968,7 +980,9 @@ def _close_interval(state: OnlineState, j: int):
             sig, plan, res, window = _identify_window(state, j, w)
             best = _best_ok(res)
             if best is None:
-                event["action"] = "rejected: every candidate was flagged"
+                event["action"] = "rejected: every candidate was flagged" + (
+                    f" (the best by E: {describe(res.columns['status'][res.rank[0]])})"
+                    if len(res) else "")
             elif not has:  # Step 3: the first model
                 new = _as_model(c, best, 1, 1, op_time)
                 event.update(action="first model", E_reident=best["E"])
@@ -999,6 +1013,9 @@ def _chunk_arrays(t, y, u, K: int):
     t = _b.array("update", "t", t, ndim=(0, 1), fix="times must be finite")
     t = np.atleast_1d(t)
     P = t.shape[0]
+    if np.ndim(y) == 2 and 1 in np.shape(y):  # a column of one output
+        raise ValueError(f"update(): y must be 1-D, one output sample per time, got shape "
+                         f"{np.shape(y)}; pass y.ravel()")
     y = np.atleast_1d(_b.array("update", "y", y, ndim=(0, 1), finite=False))
     if y.shape != (P,):
         raise ValueError(f"update(): y must have one sample per time (shape ({P},)), got shape "
@@ -1057,7 +1074,10 @@ def update(state: OnlineState, t, y, u):
     c = state.config
     K, S, L = c.n_inputs, c.samples, c.buffer
     t, y, u = _chunk_arrays(t, y, u, K)
-    t0 = float(state.t0) if math.isfinite(float(state.t0)) else (float(t[0]) if t.size else 0.0)
+    if t.size == 0 and not math.isfinite(float(state.t0)):  # nothing fed yet: t0 stays open
+        return state, OnlineOutputs(t=np.zeros(0), y=np.zeros(0), y_pred=np.zeros(0),
+                                    model_number=np.zeros(0, np.int64), events=(), models=())
+    t0 = float(state.t0) if math.isfinite(float(state.t0)) else float(t[0])
     idx = np.round((t - t0) / c.dt).astype(np.int64)
     if np.any(np.abs(t - (t0 + idx * c.dt)) > 1e-6 * c.dt):
         raise ValueError(f"update(): t is not on the sampling grid t0 + i*dt (dt={c.dt:g})")
@@ -1071,6 +1091,10 @@ def update(state: OnlineState, t, y, u):
                          f"fed: the chunk starts at t={t[0]:g}, the next expected sample is at "
                          f"t={t0 + int(state.n_seen) * c.dt:g}; drop the samples before it "
                          "(OnlineIdentifier.next_time)")
+    if idx.size > 2 and int(np.min(np.diff(idx))) > 1:  # legal (gaps), but doubtful
+        warnings.warn(f"update(): the chunk's samples are at least {int(np.min(np.diff(idx)))} "
+                      f"dt apart (dt={c.dt:g}): the samples between them count as missing and "
+                      "their intervals as invalid; check OnlineConfig.dt", stacklevel=2)
     state = eqx.tree_at(lambda s: s.t0, state, np.asarray(t0))
     ts, ys, ps, ms, events, models = [], [], [], [], [], []
     pos = 0
@@ -1107,8 +1131,8 @@ def update(state: OnlineState, t, y, u):
         ps.append(y_pred if y_pred is not None else np.full(S, np.nan))
         ms.append(np.full(S, predictor if y_pred is not None else 0))
         if y_pred is not None:
-            event["mse"] = float(np.nanmean((yi - y_pred) ** 2)) if np.any(
-                np.isfinite(yi)) else None
+            ok = np.isfinite(yi) & np.isfinite(y_pred)  # as `OnlineIdentifier.mse`: NaN and
+            event["mse"] = float(np.mean((yi[ok] - y_pred[ok]) ** 2)) if ok.any() else None
         events.append(event)
         if record is not None:
             models.append(record)
@@ -1263,6 +1287,13 @@ class OnlineIdentifier:
 
     def __init__(self, config: OnlineConfig | None = None, *, state: OnlineState | None = None,
                  keep_history: bool = True, **kwargs):
+        if config is not None and kwargs:
+            raise TypeError(f"OnlineIdentifier(): give either config or its settings as "
+                            f"keywords, not both (got config and {sorted(kwargs)}); use "
+                            "dataclasses.replace(config, ...) to change a setting")
+        if state is not None and (config is not None or kwargs):
+            raise TypeError("OnlineIdentifier(): state carries its own config; give state "
+                            "alone")
         if state is None:
             state = init(config if config is not None else OnlineConfig(**kwargs))
         self.state, self.keep_history = state, keep_history

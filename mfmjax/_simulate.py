@@ -122,8 +122,10 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
     """
     require_x64("simulate")
     if not isinstance(model, Model):
-        raise TypeError(f"simulate(): model must be a Model, got {type(model).__name__}"
-                        f"{_b.swap_hint('simulate', model)}")
+        hint = _b.swap_hint("simulate", model) or (
+            "; arguments swapped? the order is simulate(model, u, ...)"
+            if isinstance(u, Model) else "")
+        raise TypeError(f"simulate(): model must be a Model, got {type(model).__name__}{hint}")
     K = model.n_inputs
     if isinstance(u, Signals):
         raise TypeError("simulate(): u must be the inputs (T, K), got a Signals: pass "
@@ -131,12 +133,13 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
                         "to simulate from the observed initial state")
     u = _b.array("simulate", "u", u, ndim=(1, 2))
     u = (jnp if _b.is_traced(u) else np).asarray(u, dtype=np.float64)  # NumPy: no program
+    given = u.shape  # as the caller passed it, for the message
     if u.ndim == 1:
         u = u[:, None]
     if u.shape[1] != K or u.shape[0] < 1:
         raise ValueError(
             f"simulate(): u must have shape (T, {K}) for this model (time-major, one column per "
-            f"input), got {u.shape}" + ("; transpose it (u.T)" if u.shape[0] == K else "")
+            f"input), got {given}" + ("; transpose it (u.T)" if u.shape[0] == K else "")
         )
     if x0 is None:
         x0 = np.zeros(model.n)

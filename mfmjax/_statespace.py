@@ -32,6 +32,7 @@ def state_space(model: Model) -> StateSpace:
     host in NumPy, so an eager call compiles nothing; a traced one's in JAX). The input delays
     are not part of it (`model.delays`; `to_control` can add them as Pade approximants)."""
     require_x64("state_space")
+    _model_only("state_space", model)
     traced = any(_b.is_traced(x) for x in jax.tree.leaves((model.a, model.b, model.offset)))
     ss = _realised(model, jnp if traced else np)
     return ss if traced else jax.device_put(ss)
@@ -68,6 +69,12 @@ def realisation(a, bs, n, xp=jnp):
     return StateSpace(A, B, C, D), live
 
 
+def _model_only(fn: str, model) -> None:
+    if not isinstance(model, Model):
+        raise TypeError(f"{fn}(): model must be a Model (from identify, search, estimate or "
+                        f"Model.from_coefficients), got {type(model).__name__}")
+
+
 def _delays(model: Model):
     return np.asarray(model.delays, dtype=np.float64).reshape(-1)
 
@@ -82,6 +89,7 @@ def to_scipy(model: Model, *, ignore_delays: bool = False):
     `to_control(model, pade_order=...)` (a Pade approximation) or shift the inputs yourself.
     """
     require_x64("to_scipy")
+    _model_only("to_scipy", model)
     from ._boundary import eager_only
 
     eager_only("to_scipy", model)
@@ -114,6 +122,7 @@ def to_control(model: Model, *, pade_order: int = 5):
     requires the optional `control` package.
     """
     require_x64("to_control")
+    _model_only("to_control", model)
     from ._boundary import eager_only
 
     eager_only("to_control", model)

@@ -382,3 +382,29 @@ def test_unstable_model_step_and_frequency_responses_warn_and_show_the_growth():
         warnings.simplefilter("error")
         mfmjax.step_response(Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]]))
         mfmjax.frequency_response(Model.from_coefficients([0.0, 3.0, 1.0], [[1.0]]))
+
+
+def test_step_response_that_leaves_float64_raises_instead_of_flattening():
+    """A pole at +1 over 400 s: e^t passes the simulation's 1e150 guard at t = 345 s, where
+    the state was frozen and the curve came back flat at 5e149 up to t_final (1e4 s: a flat
+    9e147), with the warning that the response grows without bound beside it. The overflow
+    status now reaches `step_response`, which says to shorten t_final; 300 s stays below the
+    guard (e^300 = 2e130) and equals e^t - 1 to rounding."""
+    model = Model.from_coefficients([-1.0, 1.0], [[1.0]])
+    for t_final in (400.0, 1e4):
+        with pytest.warns(UserWarning, match="unstable"), pytest.raises(
+                ValueError, match=r"step_response\(\): the response overflows float64 .*"
+                                  r"shorter t_final"):
+            mfmjax.step_response(model, t_final, n_points=500)
+    with pytest.warns(UserWarning, match="unstable"):
+        st = mfmjax.step_response(model, 300.0, n_points=500)
+    # a_0 = -1: y = e^t - 1; 500 exact steps, each rounding a few ulp: 500 x 4 x 2.2e-16
+    np.testing.assert_allclose(st.y[0], np.expm1(st.t), rtol=5e-13)
+
+
+def test_state_space_exports_refuse_what_is_not_a_model():
+    sig = mfmjax.Signals(np.zeros(100), np.ones((100, 1)), dt=0.1)
+    for fn in (mfmjax.state_space, mfmjax.to_scipy, mfmjax.to_control):
+        for bad in (sig, np.ones(3)):
+            with pytest.raises(TypeError, match=rf"{fn.__name__}\(\): model must be a Model"):
+                fn(bad)

@@ -378,3 +378,43 @@ def test_padded_candidate_observer_equals_observe_for_every_order():
                                        atol=1e-9 * float(jnp.max(jnp.abs(ref.x_initial))))
             assert np.all(np.asarray(got.x_initial[n:]) == 0.0)
     assert names.count("jit(observe_candidate)") == 1, names
+
+
+def test_moving_final_states_raises_where_observe_does():
+    """Poles +1 and -2 over 100 s: on a 30 s window the growing mode (e^30) made M0 singular
+    and `moving_final_states` returned [[nan, nan]] with no error, where `observe` of the same
+    window raises. It now raises the same error, naming T_ob and t_j (under jit: a NaN row).
+    The singular M0 also set the overflow bit (its x0 is not finite); the message says what
+    failed (not observable), not that the response overflows."""
+    model = Model.from_coefficients([-2.0, 1.0, 1.0], [[1.0]])
+    u = np.random.default_rng(0).normal(size=(1001, 1))
+    sig = Signals(np.asarray(mfmjax.simulate(model, u, [0.1, 0.2], dt=0.1)), u, dt=0.1)
+    says = r"the state is not observable on this window .* shorten the window"
+    with pytest.raises(ValueError, match=r"observe\(\): " + says):  # final_state calls it
+        mfmjax.final_state(model, sig, (70.0, 100.0))
+    with pytest.raises(ValueError, match=r"moving_final_states\(\): " + says
+                       + r" \(T_ob = 30, the window ending at t_j = 100\)"):
+        mfmjax.moving_final_states(model, sig, 30.0, [100.0])
+    # a short window of the same record: the state the simulation passed through
+    x = np.asarray(mfmjax.moving_final_states(model, sig, 8.0, [50.0, 100.0]))
+    _, xs = mfmjax.simulate(model, u, [0.1, 0.2], dt=0.1, return_state=True)
+    # the observer's error is at most cond(M0) eps: e^(2 x 8) x 2.2e-16 = 2e-9 on 8 s
+    np.testing.assert_allclose(x, np.asarray(xs)[[500, 1000]], rtol=2e-9)
+
+
+def test_simulate_messages_show_the_callers_shape_and_the_argument_order():
+    two = Model.from_coefficients([1.0, 1.0], [[1.0], [1.0]])
+    u = np.ones((200, 2))
+    with pytest.raises(ValueError, match=r"u must have shape \(T, 2\) .* got \(200,\)$"):
+        mfmjax.simulate(two, u[:, 0], dt=0.1)  # said (200, 1), a shape the caller never had
+    with pytest.raises(TypeError, match=r"model must be a Model, got ndarray; arguments "
+                                        r"swapped\? the order is simulate\(model, u"):
+        mfmjax.simulate(u, two, dt=0.1)
+    # intersample rules as NumPy strings (a column of a DataFrame) are stored as str (np.str_
+    # made equinox warn that a JAX array was set as static); one string serves every input
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        m = Model.from_coefficients([1.0, 1.0], [[1.0]], intersample=np.array(["zoh"]))
+    assert m.intersample == ("zoh",) and type(m.intersample[0]) is str
+    assert Model.from_coefficients([1.0, 1.0], [[1.0], [1.0]],
+                                   intersample="zoh").intersample == ("zoh", "zoh")

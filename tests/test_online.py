@@ -8,6 +8,7 @@ test_identify), so 1e-3 (the issue's acceptance bound) is met with room to spare
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -530,3 +531,80 @@ def test_improved_checkpoint_resume_equals_uninterrupted(tmp_path):
     joined = np.concatenate([part.series()["y_pred"], resumed.series()["y_pred"]])
     np.testing.assert_array_equal(joined, full.series()["y_pred"])
     assert resumed.models == full.models
+
+
+def test_an_empty_first_chunk_leaves_the_start_time_open():
+    """A poll that returned nothing before the first sample fixed t0 at 0: data from t = 1100
+    then came after a 1100-sample gap (5 invalid intervals, a later first model; with epoch
+    times a gap of millions of intervals, and data off the integer grid were refused)."""
+    t, y, u, _ = switching_experiment(n_intervals=4, switches=(), models=switching_plant()[:1])
+    ident = OnlineIdentifier(_config())
+    ident.update(np.zeros(0), np.zeros(0), np.zeros((0, 2)))
+    assert math.isnan(float(ident.state.t0))
+    ident.update(t + 1100.5, y, u)
+    assert float(ident.state.t0) == 1100.5
+    assert [e["valid"] for e in ident.events] == [True] * 4
+
+
+def test_identifier_refuses_settings_beside_a_config():
+    cfg = _config()
+    with pytest.raises(TypeError, match=r"OnlineIdentifier\(\): give either config or its "
+                                        r"settings as keywords, not both .*\['dt', 'interval'\]"):
+        OnlineIdentifier(cfg, dt=2.0, interval=500.0)  # both were ignored
+    with pytest.raises(TypeError, match=r"keep_histroy"):
+        OnlineIdentifier(cfg, keep_histroy=False)  # a typo: the history grew without bound
+    with pytest.raises(TypeError, match="give state alone"):
+        OnlineIdentifier(cfg, state=mfmjax.online.init(cfg))
+    with pytest.raises(TypeError, match=r"improvements must be a list of names"):
+        OnlineConfig(dt=1.0, n_inputs=2, mode="improved", improvements=3)
+    with pytest.raises(ValueError, match=r"intersample must be one of .* got 'fho'"):
+        _config(intersample=("fho", "zoh"))
+    state = mfmjax.online.init(cfg)
+    with pytest.raises(ValueError, match=r"y must be 1-D, .* got shape \(3, 1\); pass y.ravel"):
+        mfmjax.online.update(state, [0.0, 1.0, 2.0], np.zeros((3, 1)), np.zeros((3, 2)))
+    with pytest.warns(UserWarning, match=r"at least 2 dt apart \(dt=1\)"):
+        mfmjax.online.update(state, np.arange(0.0, 600.0, 2.0), np.zeros(300), np.zeros((300, 2)))
+
+
+def test_inf_and_huge_samples_count_as_missing_like_nan():
+    """An inf output sample gave its interval's event an mse of inf (NaN was left out), and
+    one input sample of 1e200 overflowed the stream's variance: every later steadiness
+    threshold was NaN, so no operating point and no model ever came, with nothing said. Both
+    now make their interval invalid as a NaN does: the same models and event mse."""
+    t, y, u, _ = switching_experiment(n_intervals=24)
+    runs = {}
+    for name, y_bad, u_bad in (("nan", np.nan, np.nan), ("inf", np.inf, np.nan),
+                               ("huge", np.nan, 1e200)):
+        yb, ub = y.copy(), u.copy()
+        yb[12 * S + 30], ub[100, 0] = y_bad, u_bad
+        runs[name] = _run(t, yb, ub)
+    ref = runs["nan"]
+    assert ref.models and not ref.events[12]["valid"] and not ref.events[0]["valid"]
+    assert ref.events[12]["mse"] is not None and math.isfinite(ref.events[12]["mse"])
+    for name in ("inf", "huge"):
+        r = runs[name]
+        assert [m["a"] for m in r.models] == [m["a"] for m in ref.models], name
+        assert [e.get("mse") for e in r.events] == [e.get("mse") for e in ref.events], name
+    assert not runs["huge"].events[0]["valid"] and runs["huge"].events[1]["valid"]
+
+
+def test_cli_online_says_where_the_time_column_does_not_increase(switching_csv, tmp_path, capsys):
+    """A reversed file said 'dt must be > 0 (got dt=-1)', a shuffled one 'dt=-14', a repeated
+    row 'sample 50 of the chunk' (the command's internal chunk, not the file's row), and a
+    one-row file ran with dt = 1 assumed; each now names the column and the data row."""
+    from mfmjax._cli import main
+
+    lines = switching_csv.read_text().splitlines()
+    cases = {"reversed": [lines[0]] + lines[:0:-1], "repeated": lines[:301] + lines[300:],
+             "one_row": lines[:2]}
+    said = {"reversed": r"does not increase at data row 2 \(t=9998 after t=9999\)",
+            "repeated": r"does not increase at data row 301 \(t=299 after t=299\)",
+            "one_row": r"has 1 row\(s\), too few to read the sampling interval"}
+    for name, rows in cases.items():
+        path = tmp_path / f"{name}.csv"
+        path.write_text("\n".join(rows) + "\n")
+        assert main(["online", str(path), "--output", "temp", "--inputs", "u1,u2", "--time",
+                     "time"]) == 2, name
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and re.search(r"--time: column 'time' " + said[name],
+                                                        err), (name, err)
