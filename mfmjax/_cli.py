@@ -201,9 +201,10 @@ def _validation_report(args, sig, model) -> dict | None:
     obs = observation(model, sig, w, observer_window=ob)
     status = int(obs.status)
     if status & (Status.OVERFLOW | Status.UNOBSERVABLE):
-        failed = ("the model's response overflows float64 on this window (an unstable model: "
-                  "see its status)" if status & Status.OVERFLOW else
-                  "the model's state is not observable on this window")
+        failed = ("the model's state is not observable on this window"
+                  if status & Status.UNOBSERVABLE else  # (a singular M0 sets OVERFLOW too)
+                  "the model's response overflows float64 on this window (an unstable model: "
+                  "see its status)")
         return {"window": list(w), "fit": None, "E": None, "observer_window": ob,
                 "overlaps_identification": bool(overlap), "failed": failed}
     a = round((w[0] - sig.t0) / sig.dt)
