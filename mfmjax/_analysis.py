@@ -85,9 +85,7 @@ def _check(model, signals, fn):
         raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}"
                         f"{_b.swap_hint(fn, signals)}")
     _b.eager_only(fn, signals, model)  # compare, residuals: host-side comparisons
-    if model.n_inputs != signals.n_inputs:
-        raise ValueError(f"{fn}(): the model has {model.n_inputs} inputs but the signals have "
-                         f"{signals.n_inputs}; pass the inputs the model was identified with")
+    _b.same_inputs(fn, model, signals)
 
 
 def _simulated(model, signals, window, observer_window, fn):

@@ -279,6 +279,23 @@ def swap_hint(fn: str, value) -> str:
     return f"; arguments swapped? the order is {fn}({', '.join(first)}, ...)"
 
 
+def same_inputs(fn: str, model, signals) -> None:
+    """A model evaluated or refined on `signals` must have their number of inputs."""
+    if model.n_inputs != signals.n_inputs:
+        raise ValueError(f"{fn}(): the model has {model.n_inputs} inputs but the signals have "
+                         f"{signals.n_inputs}; pass the inputs the model was identified with")
+
+
+def start_layout(fn: str, model, signals) -> None:
+    """A start model of an estimator: the signals' inputs and offset term (else the offset
+    would fit a b coefficient's slot, or be dropped)."""
+    same_inputs(fn, model, signals)
+    if model.has_offset != signals.offset:
+        raise ValueError(f"{fn}(): model.has_offset={model.has_offset} but signals.offset="
+                         f"{signals.offset}; identify the start on these signals, or give "
+                         f"Signals(..., offset={model.has_offset})")
+
+
 def _eta(fn: str, eta) -> None:
     if eta is not None and not is_traced(eta):
         array(fn, "eta", eta, ndim=1, fix="give a finite constraint vector")

@@ -339,11 +339,16 @@ def _no_inputs_note(args) -> None:
               "(give --inputs to model their effect)", file=sys.stderr)
 
 
-def _names_note(model, sig) -> None:
+def _names_note(model, sig, path: str) -> None:
     """On stderr after the results: the saved model's column names differ from the data's (a
     heating system's model validated on a heat exchanger's columns gave fit -4857 % with
-    nothing said). Models without names of their own (y, u1, ...) are not compared."""
-    default = model.output_name == "y" and model.input_names == tuple(
+    nothing said). Models without names of their own (y, u1, ...) are not compared, unless
+    the file says they are a CSV's columns (`_record`: columns really named y, u1, u2, given
+    as u2, u1, gave fit 69 % against 99 % unsaid)."""
+    with open(path, "rb") as fh:  # load_model has read and checked it
+        saved = json.loads(fh.read().decode("utf-8")).get("record")
+    from_file = isinstance(saved, dict) and "columns" in saved
+    default = not from_file and model.output_name == "y" and model.input_names == tuple(
         f"u{k + 1}" for k in range(model.n_inputs))
     if not default and (model.output_name, tuple(model.input_names)) != (
             sig.output_name, tuple(sig.input_names)):
@@ -355,7 +360,8 @@ def _names_note(model, sig) -> None:
 def _record(args, sig, trend) -> dict:
     """How the identification data were read, saved with the model (`save_model`): with
     --detrend, the lines removed (validate and report remove the same ones)."""
-    out = {"dt": sig.host_dt, "detrend": getattr(args, "detrend", None)}
+    out = {"dt": sig.host_dt, "detrend": getattr(args, "detrend", None),
+           "columns": [sig.output_name, *sig.input_names]}  # the CSV's own names
     return out if trend is None else {**out, "trend": trend.to_dict()}
 
 
@@ -988,7 +994,7 @@ def _cmd_validate(args):
         print(f"fit           {res['fit_note'] if constant else f'{fit:.2f} %'}")
         print(f"observer      the first {ob:g} of the window (x0 from those samples only)")
         print("x0            " + " ".join(f"{v:.6e}" for v in res["x0"]))
-    _names_note(model, sig)
+    _names_note(model, sig, _model_path(args))
     _model_settings_note(args, model)
     _record_note(_model_path(args), args, sig)
 
@@ -1055,7 +1061,7 @@ def _cmd_report(args):
     print(note)
     print(f"wrote {', '.join(os.path.basename(f) for f in files.values())} and report.json "
           f"to {args.o}")
-    _names_note(model, sig)
+    _names_note(model, sig, args.model)
     _model_settings_note(args, model)
     _record_note(args.model, args, sig)
 

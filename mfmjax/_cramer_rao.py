@@ -2,6 +2,8 @@ r"""The Cramer-Rao bound of the free parameters for white output noise."""
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import numpy as np
 
@@ -44,7 +46,18 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
     u = edge_padded(u, max(record_bucket(u.shape[0]), bound) - u.shape[0])
     J = np.asarray(_sensitivities(base, jax.device_put(u), v, np.float64(dt), bound))[:length]
     J = J[:, np.concatenate([live, theta.size + np.arange(model.n)])]
-    return names, np.sqrt(np.diag(gauss_newton_covariance(J, sigma**2)))[: theta0.size]
+    std = np.sqrt(np.diag(gauss_newton_covariance(J, sigma**2)))[: theta0.size]
+    a = np.asarray(model.a, dtype=np.float64)
+    poles = np.roots(a[::-1])
+    rate = float(np.max(poles.real, initial=0.0))
+    # (above the roots' rounding: an integrator's 0 comes out at +-1e-17 |p|)
+    if not np.all(np.isfinite(std)) and rate > 1e-9 * np.max(np.abs(poles), initial=0.0):
+        warnings.warn(f"cramer_rao(): the model is unstable (growth rate {rate:.3g}): its "
+                      f"sensitivities grow e^{rate * (length - 1) * dt:.0f}-fold over the "
+                      "experiment and are numerically collinear, so the inf bounds do not mean "
+                      f"undetermined parameters; give length= a few growth times (3 / rate = "
+                      f"{round(3 / (rate * dt))} samples)", stacklevel=2)
+    return names, std
 
 
 @jit

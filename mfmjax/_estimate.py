@@ -188,6 +188,9 @@ def estimate(
         if m is None:  # feed-through (m_k = n) in the grid: the held-back data decide
             m = [list(range(max(n_grid) + 1))] * first.n_inputs
         grid = dict(n=n, N=N, M=M, h=h, m=m, delays=delays)
+        # the grid's kinds and ranges as `search` checks them (h='25' ran: read as 25.0)
+        check_search(first, score="E", validate=None, observer_window=None, eta=None,
+                     chunk_size=CHUNK_SETTINGS, simulate=True, progress=None, **grid)
         stages = dict(holdout=holdout, polish=polish, max_iter=max_iter, tol=tol)
         sels = holdout_search(first, estimation=identify, holdout=holdout, folds=folds,
                               records=records, meanwhile=_rehearsal(

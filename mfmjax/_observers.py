@@ -133,11 +133,7 @@ def _window(model: Model, signals: Signals, window, fn: str):
     if not isinstance(signals, Signals):
         raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}"
                         f"{_b.swap_hint(fn, signals)}")
-    if model.n_inputs != signals.n_inputs:
-        raise ValueError(
-            f"{fn}(): the model has {model.n_inputs} inputs but the signals have "
-            f"{signals.n_inputs}; pass the inputs the model was identified with"
-        )
+    _b.same_inputs(fn, model, signals)
     return validation_window(signals, window, None, model.n, fn, "window")[:2]
 
 

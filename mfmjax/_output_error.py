@@ -292,13 +292,7 @@ def _prepare(signals: Signals, model: Model, window, n_max: int | None = None,
     from ._batch import overlapped
     from ._observers import checked, padded_window, validation_window
 
-    if model.n_inputs != signals.n_inputs:
-        raise ValueError(f"output_error(): the model has {model.n_inputs} inputs but the signals "
-                         f"have {signals.n_inputs}; pass the inputs the model was identified with")
-    if model.has_offset != signals.offset:  # else the offset would fit a b coefficient's slot
-        raise ValueError(f"output_error(): model.has_offset={model.has_offset} but signals.offset="
-                         f"{signals.offset}; identify the start on these signals, or give "
-                         f"Signals(..., offset={model.has_offset})")
+    _b.start_layout("output_error", model, signals)
     original = model
     model, was_unstable = stabilised(model)
     k0, length = validation_window(signals, window, None, model.n, "output_error", "window")[:2]

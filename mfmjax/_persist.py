@@ -14,7 +14,7 @@ import numpy as np
 
 from ._boundary import eager_only, require_x64
 from ._model import Model, is_stable
-from ._modulating import ModulatingFunction
+from ._modulating import ModulatingFunction, as_values
 from ._pytree import replace_fields
 from ._status import Status
 
@@ -81,7 +81,7 @@ def atomic_write(path, data: bytes) -> None:
             os.close(dfd)
 
 
-RECORD_KEYS = ("dt", "detrend", "trend")  # how the identification data were read (`save_model`)
+RECORD_KEYS = ("dt", "detrend", "trend", "columns")  # how the identification data were read (`save_model`)
 
 
 def save_model(model: Model, path, *, covariance=None, record=None) -> None:
@@ -118,11 +118,15 @@ def save_model(model: Model, path, *, covariance=None, record=None) -> None:
                     dt, bool) and math.isfinite(dt) and dt > 0))
                 or record.get("detrend") not in (None, "linear", "constant")
                 or not _trend_ok(record.get("trend"), record.get("detrend"),
-                                 model.n_inputs)):
+                                 model.n_inputs)
+                or ("columns" in record and not (
+                    isinstance(record["columns"], list)
+                    and len(record["columns"]) == model.n_inputs + 1
+                    and all(isinstance(c, str) for c in record["columns"])))):
             raise ValueError(f"save_model(): record must be a dict with keys from {RECORD_KEYS}: "
                              "dt a finite step > 0, detrend None, 'linear' or 'constant', "
-                             f"trend Trend.to_dict() of that kind and the model's inputs "
-                             f"(got {record!r})")
+                             f"trend Trend.to_dict() of that kind and the model's inputs, "
+                             f"columns the output's and inputs' names (got {record!r})")
         doc["record"] = {k: (float(v) if k == "dt" else v) for k, v in record.items()}
     atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
 
@@ -162,6 +166,10 @@ def load_covariance(path, model: Model | None = None):
         raise ValueError(f"load_covariance(): {path}: the covariance is not a finite matrix "
                          f"over the model's free parameters {free} (got names {names}, shape "
                          f"{cov.shape})")
+    if not (np.allclose(cov, cov.T, rtol=1e-12, atol=0.0) and np.all(np.diag(cov) >= 0)):
+        raise ValueError(f"load_covariance(): {path}: the covariance must be symmetric with a "
+                         "non-negative diagonal (edited by hand?); save it again with "
+                         "save_model(..., covariance=...)")
     return cov
 
 
@@ -187,12 +195,14 @@ def load_model(path) -> Model:
                          "corrupted?)") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ValueError(f"load_model(): {path} is not an mfmjax model file")
-    if doc.get("version") != VERSION:
+    version = doc.get("version")
+    if type(version) is not int or version != VERSION:  # (True == 1 in Python)
         raise ValueError(
-            f"load_model(): {path} has format version {doc.get('version')}, this mfmjax reads "
+            f"load_model(): {path} has format version {version!r}, this mfmjax reads "
             f"version {VERSION}; re-save it with a matching mfmjax"
         )
     try:
+        _check_kinds(doc)
         model = Model.from_coefficients(
             doc["a"],
             doc["b"],
@@ -204,7 +214,8 @@ def load_model(path) -> Model:
         )
         for key, own in (("n", model.n), ("m", list(model.m))):  # edited by hand: agree
             if key in doc and doc[key] != own:
-                raise ValueError(f"{key}={doc[key]} but the coefficients a and b give {key}={own}")
+                raise ValueError(f"{key}={doc[key]!r} but the coefficients a and b give "
+                                 f"{key}={own}")
         if doc.get("h") is not None:
             model = _with_mf(model, doc)
         else:  # a model without MF settings (output error, SRIVC, estimate) keeps its status
@@ -220,6 +231,39 @@ def load_model(path) -> Model:
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise ValueError(f"load_model(): {path} is missing or has a bad field: {msg}") from None
     return model
+
+
+def _check_kinds(doc: dict) -> None:
+    """Every field of a model file of the kind `save_model` writes (a hand-edited file took
+    strings as coefficients, null delays as zeros, a bool J as 1 and "ab" as two names)."""
+    def number(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    def numbers(key, v, depth=1):
+        ok = isinstance(v, list) and all(
+            number(x) if depth == 1 else isinstance(x, list) and all(number(y) for y in x)
+            for x in v)
+        if not ok:
+            raise ValueError(f"{key} must be a list{' of lists' * (depth - 1)} of numbers "
+                             f"(got {v!r})")
+
+    numbers("a", doc["a"])
+    numbers("b", doc["b"], depth=2)
+    numbers("delays", doc["delays"])
+    if "theta" in doc:
+        numbers("theta", doc["theta"])
+    for key in ("offset", "J", "J_rel", "cond", "N", "M", "h"):
+        v = doc.get(key)
+        if v is not None and not number(v):
+            raise ValueError(f"{key} must be a number or null (got {v!r})")
+        if key in ("J", "J_rel", "cond") and v is not None and v < 0:
+            raise ValueError(f"{key} must be >= 0 (got {v!r})")
+    if not isinstance(doc.get("output_name", "y"), str):
+        raise ValueError(f"output_name must be a string (got {doc['output_name']!r})")
+    names = doc.get("input_names")
+    if names is not None and not (isinstance(names, list)
+                                  and all(isinstance(v, str) for v in names)):
+        raise ValueError(f"input_names must be a list of strings (got {names!r})")
 
 
 def _free_theta(model: Model, theta) -> dict:
@@ -266,7 +310,7 @@ def _with_mf(model: Model, doc: dict) -> Model:
     import equinox as eqx
     import jax
 
-    mf = ModulatingFunction(doc["N"], doc["M"], doc["h"])
+    mf = as_values(ModulatingFunction(doc["N"], doc["M"], doc["h"]))  # as identify's
     for key in ("N", "M"):  # eq. 5: as identify requires
         if float(doc[key]) < model.n:
             raise ValueError(f"{key}={doc[key]} is below n={model.n}; {key} must be >= n")

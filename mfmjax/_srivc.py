@@ -441,12 +441,7 @@ def _checked(signals: Signals, model: Model, max_iter, tol):
         raise ValueError("srivc(): the signals have no input; SRIVC's instruments are the "
                          "filtered inputs, so a model without inputs (an autonomous response) "
                          "is fitted by output_error instead")
-    if model.n_inputs != K:
-        raise ValueError(f"srivc(): the model has {model.n_inputs} inputs but the signals have "
-                         f"K={K}; start from a model identified on these signals")
-    if model.has_offset != signals.offset:
-        raise ValueError(f"srivc(): model.has_offset={model.has_offset} but signals.offset="
-                         f"{signals.offset}; identify the start on these signals")
+    _b.start_layout("srivc", model, signals)
     n, m = model.n, tuple(model.m)
     p = n + sum(mk + 1 for mk in m) + int(model.has_offset)
     T = signals.y.shape[-1]

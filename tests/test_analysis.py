@@ -356,6 +356,16 @@ def test_save_model_keeps_an_optional_covariance(tmp_path):
         mfmjax.load_covariance(tmp_path / "m.json", other)
     with pytest.raises(ValueError, match=r"save_model\(\): covariance must be a finite \(4, 4\)"):
         mfmjax.save_model(model, tmp_path / "x.json", covariance=np.eye(2))
+    import json  # a hand-edited matrix: refused by file, not later by step_response
+
+    doc = json.loads((tmp_path / "m.json").read_text())
+    for i, j, v in ((0, 0, -1.0), (0, 1, 123.0)):
+        bad = json.loads(json.dumps(doc))
+        bad["covariance"]["matrix"][i][j] = v
+        (tmp_path / "bad.json").write_text(json.dumps(bad))
+        with pytest.raises(ValueError, match=r"load_covariance\(\): .*bad.json: the covariance "
+                                             r"must be symmetric with a non-negative diagonal"):
+            mfmjax.load_covariance(tmp_path / "bad.json")
 
 
 def _is_png(path):

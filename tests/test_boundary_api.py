@@ -548,9 +548,10 @@ def test_audit_messages_name_the_problem(data, fitted, tmp_path):
                                                 r"not exist"):
         mfmjax.save_model(fitted, missing)
     with pytest.raises(ValueError, match=r"save_model\(\): record must be a dict with keys "
-                                         r"from \('dt', 'detrend', 'trend'\)"):
+                                         r"from \('dt', 'detrend', 'trend', 'columns'\)"):
         mfmjax.save_model(fitted, tmp_path / "m.json", record={"dt": 1.0, "units": "s"})
-    for bad in ({"dt": None}, {"dt": -1.0}, {"detrend": "cubic"}):
+    for bad in ({"dt": None}, {"dt": -1.0}, {"detrend": "cubic"}, {"columns": ["y"]},
+                {"columns": "y,u1"}):
         with pytest.raises(ValueError, match=r"save_model\(\): record must be a dict"):
             mfmjax.save_model(fitted, tmp_path / "m.json", record=bad)
     ident = mfmjax.OnlineIdentifier(OnlineConfig(dt=1.0, n_inputs=1))

@@ -98,6 +98,13 @@ def test_estimate_refuses_bad_orders_by_name(noisy, n, match):
         mfmjax.estimate(noisy[0], **dict(GRID, n=n))
 
 
+def test_estimate_checks_its_grid_as_search_does(noisy):
+    """The hold-out path took h='25' as 25.0 (search refuses a string by name)."""
+    with pytest.raises(TypeError, match=r"h must be a number or a sequence of numbers, got "
+                                        r"the string '25'"):
+        mfmjax.estimate(noisy[0], **dict(GRID, h="25"))
+
+
 def test_cli_search_estimate(noisy, tmp_path, capsys):
     """`mfmjax search ... --estimate`: the same path from the command line, same model."""
     import json

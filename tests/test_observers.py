@@ -1,3 +1,4 @@
+import re
 import warnings
 
 import jax
@@ -418,3 +419,37 @@ def test_simulate_messages_show_the_callers_shape_and_the_argument_order():
     assert m.intersample == ("zoh",) and type(m.intersample[0]) is str
     assert Model.from_coefficients([1.0, 1.0], [[1.0], [1.0]],
                                    intersample="zoh").intersample == ("zoh", "zoh")
+
+
+def test_load_model_refuses_hand_edits_of_the_wrong_kind_and_keeps_the_pytree(tmp_path):
+    """A hand-edited file loaded with strings as coefficients, null delays as zeros, a bool J
+    as 1, version true as 1 and "ab" as two input names; each is now refused by field. A
+    loaded model (and a search's `best`) has identify's pytree: MF settings as values, no
+    static bound (N was an int and h_max set, so `jax.tree.map` could not stack them)."""
+    import json
+
+    from mfmjax.datasets import simulated_experiment, third_order_two_input
+
+    sig = simulated_experiment(third_order_two_input(), dt=0.05, n_samples=1200, seed=0)
+    model = mfmjax.identify(sig, mfmjax.Structure(3, [1, 0]), mfmjax.ModulatingFunction(4, 5, 2.0))
+    path = tmp_path / "m.json"
+    mfmjax.save_model(model, path)
+    loaded = mfmjax.load_model(path)
+    assert jax.tree.structure(loaded) == jax.tree.structure(model)
+    best = mfmjax.search(sig, n=(3,), m=[(1,), (0,)], N=(4,), M=(5,), h=(2.0,)).best(0)
+    assert jax.tree.structure(best) == jax.tree.structure(model)
+    jax.tree.map(lambda *x: np.stack(x), model, loaded, best)  # stacks: one pytree
+    doc = json.loads(path.read_text())
+    for key, value, said in [
+            ("delays", None, "delays must be a list of numbers"),
+            ("a", ["0.5", "1.5", "1", "1"], "a must be a list of numbers"),
+            ("b", [[1.0, 0.5], 0.7], "b must be a list of lists of numbers"),
+            ("J", True, "J must be a number or null"), ("J", -1.0, "J must be >= 0"),
+            ("input_names", "ab", "input_names must be a list of strings"),
+            ("output_name", 5, "output_name must be a string"),
+            ("theta", None, "theta must be a list of numbers"),
+            ("version", True, "format version True, this mfmjax reads version 1"),
+            ("n", "3", "n='3' but the coefficients a and b give n=3")]:
+        path.write_text(json.dumps({**doc, key: value}))
+        with pytest.raises(ValueError, match=r"load_model\(\): .*" + re.escape(said)):
+            mfmjax.load_model(path)

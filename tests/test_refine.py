@@ -8,6 +8,8 @@ relative plus rounding ~ (noise of one evaluation ~ cond * eps ~ 1e-12) / 1e-6 ~
 hence rtol = 1e-5 below.
 """
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -114,6 +116,32 @@ def test_refine_failure_returns_start(noisy):
         mfmjax.refine(sig, start, vary=("h", "N"), bounds={"N": (0.5, 12)})
 
 
+def test_refine_returns_the_model_its_score_belongs_to(noisy):
+    """A start identified on other data (another realisation here) and a refinement that
+    fails: `refine` returned that start beside the score of the model its settings give on
+    these signals (0.00997 against its own 3.73 in the audit's case). It now returns the
+    model it scored, says so, and keeps the start in `Refinement.start`. A start of another
+    layout is refused as `output_error` and `srivc` refuse it (it ran, and returned a start
+    without an offset beside a score with one: 2.7e-11 against 98.3)."""
+    true, sig, sd = noisy
+    other = simulated_experiment(true, dt=float(sig.dt), n_samples=sig.n_samples, seed=99,
+                                 noise_std=10 * sd)
+    start = mfmjax.identify(other, ST, ModulatingFunction(3, 4, 200.0))
+    with pytest.warns(UserWarning, match=r"returning the start's settings identified on these "
+                                         r"signals \(the start differs"):
+        r = mfmjax.refine(sig, start, vary=("h",), max_steps=0)
+    assert r.model is not start and r.start is start
+    assert r.value == pytest.approx(float(mfmjax.performance_index(r.model, sig)), rel=1e-9)
+    with pytest.raises(ValueError, match=r"refine\(\): model.has_offset=False but "
+                                         r"signals.offset=True"):
+        mfmjax.refine(Signals(sig.y, sig.u, dt=sig.dt, intersample=sig.intersample,
+                              offset=True), start, vary=("h",))
+    one = Signals(sig.y, np.asarray(sig.u)[:, :1], dt=sig.dt)
+    with pytest.raises(ValueError, match=r"refine\(\): the model has 2 inputs but the "
+                                         r"signals have 1"):
+        mfmjax.refine(one, start, vary=("h",))
+
+
 def test_output_error_removes_bias_and_reports_errors(noisy):
     true, sig, sd = noisy
     start = mfmjax.identify(sig, ST, ModulatingFunction(3, 4, 200.0))
@@ -191,6 +219,26 @@ def test_cramer_rao_undetermined_parameters_are_infinite_and_shapes_checked():
         mfmjax.cramer_rao(two, np.ones(400), x0, dt=0.1, sigma=0.05)
     with pytest.raises(ValueError, match=r"x0 must have shape \(2,\)"):
         mfmjax.cramer_rao(model, np.ones((400, 1)), [0.2, -0.1, 0.0], dt=0.1, sigma=0.05)
+
+
+def test_cramer_rao_of_an_unstable_model_says_why_its_bounds_are_infinite():
+    """A pole at +0.68 over 100 s: the sensitivity columns grow e^68-fold and are numerically
+    collinear, so every bound came back inf with nothing said, which the docstring reads as
+    "undetermined". It now warns and names `length=`; 200 samples (10 s) give finite bounds,
+    and a stable model's finite bounds do not warn."""
+    unstable = mfmjax.Model.from_coefficients([-1.0, 0.8, 1.0], [[2.0]])
+    u = np.sin(0.7 * np.arange(2000) * 0.05)[:, None]
+    with pytest.warns(UserWarning, match=r"cramer_rao\(\): the model is unstable \(growth "
+                                         r"rate 0\.677\).* give length= a few growth times"):
+        _, crb = mfmjax.cramer_rao(unstable, u, np.zeros(2), dt=0.05, sigma=0.3)
+    assert np.all(np.isinf(crb))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, crb = mfmjax.cramer_rao(unstable, u, np.zeros(2), dt=0.05, sigma=0.3, length=200)
+        assert np.all(np.isfinite(crb))
+        stable = mfmjax.Model.from_coefficients([1.0, 0.8, 1.0], [[2.0]])
+        assert np.all(np.isfinite(mfmjax.cramer_rao(stable, u, np.zeros(2), dt=0.05,
+                                                    sigma=0.3)[1]))
 
 
 @pytest.mark.parametrize("snr_db, tol", [(None, 0.5), (20.0, 2.0)])

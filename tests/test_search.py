@@ -1,5 +1,6 @@
 import json
 import os
+import re
 import subprocess
 import sys
 import warnings
@@ -374,3 +375,19 @@ def test_small_grid_is_split_over_the_cores_for_search_only(noisy, monkeypatch):
         plan = plan_search(noisy, split=split, **kw)
         assert plan.small and plan.chunk == chunk and len(plan.hd) == 3
     assert not plan_search(noisy, split=True, **dict(kw, chunk_size=2)).small
+
+
+def test_table_and_to_dict_check_top(clean):
+    """`table(0)` and `table(-1)` printed the header alone, `to_dict(-1)` no rows, `top=1.5`
+    a bare TypeError and `top=True` one row: `top` is checked as `best`'s index is."""
+    res = mfmjax.search(clean, n=(1, 2, 3), N=(4,), M=(4,), h=(2.0,), m=[(0, 1), (0,)],
+                        score="J")  # the grid of test_best_by_E_has_true_orders: its program
+    for top, kind, said in ((0, ValueError, "must be an integer >= 1 (got top=0)"),
+                            (-1, ValueError, "must be an integer >= 1 (got top=-1)"),
+                            (1.5, ValueError, "must be an integer (got top=1.5)"),
+                            (True, TypeError, "top"), ("3", TypeError, "top")):
+        for fn in (res.table, res.to_dict, lambda t: res.to_json(top=t)):
+            with pytest.raises(kind, match=r"SearchResult\.(table|to_dict)\(\): top "
+                               + re.escape(said) if kind is ValueError else said):
+                fn(top)
+    assert len(res.table(2).splitlines()) == 3 and len(res.to_dict(2)["ranked"]) == 2

@@ -10,7 +10,7 @@ import jax
 import numpy as np
 
 from .._model import Model, finite_or_none, plain_number
-from .._modulating import ModulatingFunction
+from .._modulating import ModulatingFunction, as_values
 from .._signals import dependent_candidates
 from .._status import Status, describe
 from .._structure import Structure
@@ -96,7 +96,7 @@ class SearchResult(eqx.Module):
         return Model(
             a=a, b=b, offset=offset, delays=delays, theta=theta, J=J, J_rel=J_rel, cond=cond,
             status=status,
-            mf=ModulatingFunction(r["N"], r["M"], r["h"]),
+            mf=as_values(ModulatingFunction(r["N"], r["M"], r["h"])),  # as identify's
             structure=structure,
             intersample=self.intersample,
             has_offset=self.has_offset,
@@ -113,7 +113,7 @@ class SearchResult(eqx.Module):
                 f"{'J':>10} {'E held-out' if held else 'E':>11} "
                 f"{'fit% h-o' if held else 'fit%':>8} {'aic':>10} {'bic':>10}  status")
         lines = [head]
-        for i in range(min(top, len(self))):
+        for i in range(min(_top("table", top), len(self))):
             r = self._row(i)
             lines.append(
                 f"{r['rank']:>4} {r['n']:>2} {','.join(map(str, r['m'])):>8} {r['N']:>4} "
@@ -124,7 +124,8 @@ class SearchResult(eqx.Module):
         return "\n".join(lines)
 
     def to_dict(self, top: int | None = None) -> dict:
-        rows = [self._row(i) for i in range(len(self) if top is None else min(top, len(self)))]
+        rows = [self._row(i) for i in range(len(self) if top is None
+                                            else min(_top("to_dict", top), len(self)))]
         return {"score": self.score, "candidates": len(self), "compile_s": self.compile_s,
                 "run_s": self.run_s, "ranked": rows}
 
@@ -203,3 +204,11 @@ def collect(cols, combos, structs, signals, static, score, t_compile, t_run, whe
         output_name=signals.output_name, input_names=signals.input_names,
         compile_s=t_compile, run_s=t_run,
     )
+
+
+def _top(fn: str, top) -> int:
+    """`top` of `table`/`to_dict`: a whole number >= 1 (-1 and 0 gave an empty table)."""
+    from .._boundary import integer
+
+    return integer(f"SearchResult.{fn}", "top", top, lo=1,
+                   fix="give how many of the best candidates to show")
