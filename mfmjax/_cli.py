@@ -124,9 +124,11 @@ def _add_data_args(p: argparse.ArgumentParser, *, online: bool = False):
                    "by --intersample, the output linearly; mfmjax.resample)"))
     p.add_argument("--detrend", choices=("linear", "constant"),
                    help=hide("remove the least-squares line (or the mean) of the output and of each "
-                   "input, fitted on --identify-window (default: the whole record) and removed "
-                   "from the whole record; the model is then for deviations from them and has "
-                   "no offset term unless --offset (mfmjax.detrend, Trend.apply)"))
+                   "input, fitted on --identify-window where the command has one (else the "
+                   "whole record; validate and report reuse the lines saved with the model) "
+                   "and removed from the whole record; the model is then for deviations from "
+                   "them and has no offset term unless --offset (mfmjax.detrend, "
+                   "Trend.apply)"))
 
 
 def _add_window_args(p: argparse.ArgumentParser):

@@ -55,6 +55,9 @@ def atomic_write(path, data: bytes) -> None:
     if not os.path.isdir(folder):  # else the error names the temporary file, not `path`
         raise FileNotFoundError(f"cannot write {path}: the folder {folder} does not exist; "
                                 "create it first")
+    if os.path.isdir(path):  # (the rename's error named the temporary file)
+        raise IsADirectoryError(f"cannot write {path}: it is a folder; give a file name, e.g. "
+                                f"{os.path.join(path, 'model.json')}")
     try:
         mode = os.stat(path).st_mode & 0o777
     except OSError:

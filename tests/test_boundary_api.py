@@ -547,6 +547,9 @@ def test_audit_messages_name_the_problem(data, fitted, tmp_path):
     with pytest.raises(FileNotFoundError, match=rf"cannot write {missing}: the folder .* does "
                                                 r"not exist"):
         mfmjax.save_model(fitted, missing)
+    with pytest.raises(IsADirectoryError, match=rf"cannot write {tmp_path}: it is a folder; "
+                                                r"give a file name"):
+        mfmjax.save_model(fitted, tmp_path)
     with pytest.raises(ValueError, match=r"save_model\(\): record must be a dict with keys "
                                          r"from \('dt', 'detrend', 'trend', 'columns'\)"):
         mfmjax.save_model(fitted, tmp_path / "m.json", record={"dt": 1.0, "units": "s"})

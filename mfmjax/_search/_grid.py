@@ -56,7 +56,7 @@ CHUNK_SETTINGS = 8  # (h, delays) settings per compiled chunk by default (cache-
 
 
 def grid_values(x, name: str) -> list:
-    vals = [x] if np.isscalar(x) else list(x)
+    vals = [x] if np.ndim(x) == 0 else list(x)  # a model's mf.N is a 0-d array
     if not vals:
         raise ValueError(f"search(): the {name} grid is empty")
     return vals
