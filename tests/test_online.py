@@ -608,3 +608,20 @@ def test_cli_online_says_where_the_time_column_does_not_increase(switching_csv, 
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and re.search(r"--time: column 'time' " + said[name],
                                                         err), (name, err)
+
+
+def test_cli_online_time_in_another_unit_points_to_the_interval(switching_csv, tmp_path,
+                                                                capsys):
+    """A time column in milliseconds (dt = 1000) against the default interval of 250: the
+    error said to give --dt, which cannot help; it now also names interval in --config."""
+    from mfmjax._cli import main
+
+    rows = switching_csv.read_text().splitlines()
+    ms = tmp_path / "ms.csv"
+    ms.write_text("\n".join([rows[0]] + [f"{float(r.split(',', 1)[0]) * 1000!r},"
+                                         f"{r.split(',', 1)[1]}" for r in rows[1:]]) + "\n")
+    assert main(["online", str(ms), "--output", "temp", "--inputs", "u1,u2", "--time",
+                 "time"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "interval (250) must be a whole number" in err
+    assert "set interval in --config in the time column's unit (a multiple of dt)" in err
