@@ -41,13 +41,17 @@ def as_records(fn: str, signals) -> tuple[list, bool]:
         return [signals], True
     if isinstance(signals, list | tuple) and not signals:
         raise ValueError(f"{fn}(): the list of records is empty; give at least one Signals")
-    if not isinstance(signals, list | tuple) or \
-            not all(isinstance(r, Signals) for r in signals):
+    if not isinstance(signals, list | tuple):
         from ._boundary import swap_hint
 
         raise TypeError(f"{fn}(): signals must be a Signals or a list of Signals of one "
                         f"layout (a batch of records), got {type(signals).__name__}"
                         f"{swap_hint(fn, signals)}")
+    bad = [i for i, r in enumerate(signals) if not isinstance(r, Signals)]
+    if bad:
+        raise TypeError(f"{fn}(): signals must be a Signals or a list of Signals of one "
+                        f"layout (a batch of records); record {bad[0]} is a "
+                        f"{type(signals[bad[0]]).__name__}")
     first = signals[0]
     layout = lambda r: (r.n_samples, r.n_inputs, r.dt, r.t0, r.intersample, r.smooth,  # noqa: E731
                         r.offset, r.output_rule)

@@ -503,6 +503,11 @@ def check_cramer_rao(model, u, x0, dt, sigma, length) -> None:
     if not isinstance(model, Model):
         raise TypeError(f"{fn}(): model must be a Model, got {type(model).__name__}"
                         f"{swap_hint(fn, model)}")
+    from ._signals import Signals
+
+    if isinstance(u, Signals):  # (it said "u must hold real numbers, got dtype object")
+        raise TypeError(f"{fn}(): u must be the experiment's inputs (T, K), got a Signals: "
+                        "pass signals.u")
     if not is_traced(u):
         u = array(fn, "u", u, ndim=(1, 2))
     K = model.n_inputs

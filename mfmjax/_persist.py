@@ -184,6 +184,8 @@ def load_model(path) -> Model:
     one less: a fitted model's free parameters, which it keeps as its theta).
     """
     require_x64("load_model")
+    if not isinstance(path, (str, bytes, os.PathLike)):
+        raise TypeError(f"load_model(): path must be a file name, got {type(path).__name__}")
     try:
         with open(path, "rb") as fh:
             raw = fh.read()

@@ -592,3 +592,22 @@ def test_swapped_record_and_model_say_the_argument_order():
     with pytest.raises(TypeError) as err:  # neither a record nor a model: no hint
         mfmjax.observe("model.json", sig)
     assert "swapped" not in str(err.value)
+
+
+def test_record_lists_signals_given_as_u_and_a_path_that_is_not_one_are_named(tmp_path):
+    """`srivc([sig, 3], m)` said "got list" (the list was right, its element 1 was not),
+    `cramer_rao(model, signals, ...)` "u must hold real numbers, got dtype object", and
+    `load_model(None)` a bare TypeError from `open`."""
+    sig = Signals(np.sin(np.arange(200) * 0.1), np.cos(np.arange(200) * 0.1)[:, None], dt=0.1)
+    model = mfmjax.Model.from_coefficients([1.0, 1.0], [[1.0]])
+    for fn in (lambda: mfmjax.srivc([sig, 3], model),
+               lambda: mfmjax.estimate([sig, "y"], h=2.0, n=(1,), N=(3,), M=(3,))):
+        with pytest.raises(TypeError, match=r"list of Signals of one layout \(a batch of "
+                                            r"records\); record 1 is a (int|str)"):
+            fn()
+    with pytest.raises(TypeError, match=r"cramer_rao\(\): u must be the experiment's inputs "
+                                        r"\(T, K\), got a Signals: pass signals.u"):
+        mfmjax.cramer_rao(model, sig, np.zeros(1), dt=0.1, sigma=0.1)
+    with pytest.raises(TypeError, match=r"load_model\(\): path must be a file name, got "
+                                        r"NoneType"):
+        mfmjax.load_model(None)
