@@ -1191,6 +1191,8 @@ def main(argv=None) -> int:
             # and its names note says when the columns differ from the model's (`_names_note`)
             warnings.filterwarnings("ignore", message=r"observe\(\): the record's inputs")
             _quiet_jax_callback_log()
+            if getattr(args, "plot", None) and not os.path.splitext(args.plot)[1]:
+                args.plot += ".png"  # what matplotlib writes; the JSON said "out" for out.png
             args.func(args)
     except (_UserError, ValueError, TypeError, OSError) as err:
         print(f"error: {_first_line(err)}", file=sys.stderr)

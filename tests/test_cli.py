@@ -191,6 +191,11 @@ def test_validate_compares_columns_really_named_like_the_defaults(csv_file, tmp_
             in capsys.readouterr().err)
     assert main(["validate", *common, "--inputs", "u1,u2"]) == 0
     assert "note:" not in capsys.readouterr().err
+    # --plot without an extension: matplotlib writes fig.png, and the JSON said "fig"
+    assert main(["validate", *common, "--inputs", "u1,u2", "--plot", str(tmp_path / "fig"),
+                 "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["plot"] == str(tmp_path / "fig.png")
+    assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_validate_and_report_say_when_the_columns_differ_from_the_models(csv_file, tmp_path,
