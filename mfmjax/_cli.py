@@ -341,6 +341,27 @@ def _no_inputs_note(args) -> None:
               "(give --inputs to model their effect)", file=sys.stderr)
 
 
+def _writable_folder(option: str, path) -> None:
+    """Said before the run, not after it (a long stream's work was lost; validate printed
+    `[Errno 2] No such file or directory`)."""
+    folder = os.path.dirname(os.path.abspath(path)) if path else None
+    if folder and not (os.path.isdir(folder) and os.access(folder, os.W_OK)):
+        raise _UserError(f"{option} {path}: the folder {folder} does not exist or is not "
+                         "writable; create it or give another path")
+
+
+def _check_outputs(args) -> None:
+    """The output paths of any command, before it runs."""
+    if getattr(args, "plot", None):
+        if not os.path.splitext(args.plot)[1]:
+            args.plot += ".png"  # what matplotlib writes; the JSON said "out" for out.png
+        _writable_folder("--plot", args.plot)
+    if getattr(args, "func", None) is _cmd_report and os.path.exists(args.o) and not \
+            os.path.isdir(args.o):
+        raise _UserError(f"-o {args.o}: a file of that name exists; report writes a folder of "
+                         "figures: give a new or existing folder")
+
+
 def _names_note(model, sig, path: str) -> None:
     """On stderr after the results: the saved model's column names differ from the data's (a
     heating system's model validated on a heat exchanger's columns gave fit -4857 % with
@@ -641,12 +662,7 @@ def _cmd_online(args):
         t = np.arange(y.size) * dt
     else:
         raise _UserError("give --time COLUMN or --dt SECONDS")
-    for option, path in (("--plot", args.plot), ("--checkpoint", args.checkpoint)):
-        folder = os.path.dirname(os.path.abspath(path)) if path else None
-        if folder and not (os.path.isdir(folder) and os.access(folder, os.W_OK)):
-            # said before the run, not after it (a long stream's work was lost)
-            raise _UserError(f"{option} {path}: the folder {folder} does not exist or is not "
-                             "writable; create it or give another path")
+    _writable_folder("--checkpoint", args.checkpoint)
     before = {"sse": 0.0, "count": 0, "intervals": 0}
     resumed = partial = False
     if args.checkpoint and os.path.exists(args.checkpoint):
@@ -1191,8 +1207,7 @@ def main(argv=None) -> int:
             # and its names note says when the columns differ from the model's (`_names_note`)
             warnings.filterwarnings("ignore", message=r"observe\(\): the record's inputs")
             _quiet_jax_callback_log()
-            if getattr(args, "plot", None) and not os.path.splitext(args.plot)[1]:
-                args.plot += ".png"  # what matplotlib writes; the JSON said "out" for out.png
+            _check_outputs(args)
             args.func(args)
     except (_UserError, ValueError, TypeError, OSError) as err:
         print(f"error: {_first_line(err)}", file=sys.stderr)

@@ -539,3 +539,23 @@ def test_identify_and_search_refine(csv_file, capsys, tmp_path):
                  "--h", "2.0", "--refine"]) == 0
     text = capsys.readouterr().out
     assert "refined settings" in text and "std. error" in text and "output error" in text
+
+
+def test_output_paths_are_checked_before_the_command_runs(csv_file, tmp_path, capsys):
+    """`validate --plot /missing/x.png` printed `[Errno 2] No such file or directory` after
+    the validation, and `report -o FILE` `[Errno 17] File exists`: both are said by option
+    before anything runs."""
+    model_path = tmp_path / "model.json"
+    assert main(["identify", str(csv_file), *ARGS, "--save", str(model_path)]) == 0
+    capsys.readouterr()
+    common = [str(csv_file), "--output", "temp", "--time", "t", "--inputs", "u1,u2",
+              "--model", str(model_path)]
+    missing = tmp_path / "no" / "x.png"
+    assert main(["validate", *common, "--plot", str(missing)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"error: --plot {missing}: the folder {missing.parent} does not exist or is "
+                   "not writable; create it or give another path")
+    assert main(["report", *common, "-o", str(csv_file)]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"error: -o {csv_file}: a file of that name exists; report writes a folder of "
+        "figures: give a new or existing folder")
