@@ -107,8 +107,12 @@ def scipy_simulate(model, u, dt, modes):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--repeats", type=int, default=20,
+                    help="new settings per entry point (at least 3: the accuracy check uses "
+                         "the fourth setting)")
     args = ap.parse_args()
+    if args.repeats < 3:
+        ap.error("--repeats must be at least 3")
     rng = np.random.default_rng(0)
     true = third_order_two_input()
     # white output noise (std 0.05 on an O(1) output): noise-free data make G singular, which

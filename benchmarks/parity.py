@@ -72,7 +72,9 @@ def compare(old_path, new_path):
 
 
 if __name__ == "__main__":
-    if sys.argv[1] == "save":
+    if len(sys.argv) == 3 and sys.argv[1] == "save":
         np.savez(sys.argv[2], **collect())
-    else:
+    elif len(sys.argv) == 4 and sys.argv[1] == "compare":
         compare(sys.argv[2], sys.argv[3])
+    else:
+        sys.exit(__doc__)  # usage (it read any other first word as compare: an IndexError)
