@@ -158,13 +158,13 @@ class OnlineConfig(eqx.Module):
         fn = "OnlineConfig"
         _b.require_x64(fn)
         mode = _b.choice(fn, "mode", mode, ("paper", "improved"))
-        if improvements is None:
-            improvements = IMPROVEMENTS if mode == "improved" else ()
-        elif isinstance(improvements, str):
+        if isinstance(improvements, str):
             improvements = (improvements,)
-        elif not isinstance(improvements, (list, tuple)):
+        elif improvements is not None and not isinstance(improvements, (list, tuple)):
             raise TypeError(f"OnlineConfig(): improvements must be a list of names from "
                             f"{IMPROVEMENTS}, got {improvements!r}")
+        if improvements is None:
+            improvements = IMPROVEMENTS if mode == "improved" else ()
         elif mode == "paper" and len(improvements):
             raise ValueError("OnlineConfig(): improvements need mode='improved' (paper mode is "
                              f"Algorithm 1 as stated), got improvements={improvements!r}")
