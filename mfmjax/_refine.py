@@ -316,6 +316,8 @@ def refine(
         warnings.warn(f"refine(): not converged ({code} after {steps} steps); returning "
                       f"{what if failed else 'the best point of the path'} (see "
                       "Refinement.converged)", stacklevel=2)
+    elif failed and model is not start:  # converged without improving: still say it
+        warnings.warn(f"refine(): no improvement on the start; returning {what}", stacklevel=2)
     if failed:
         return Refinement(model, start, s_start, s_start, np.exp(np.asarray(path)), code, steps,
                           math.exp(path[0]), score)
