@@ -557,6 +557,10 @@ def test_identifier_refuses_settings_beside_a_config():
         OnlineIdentifier(cfg, state=mfmjax.online.init(cfg))
     with pytest.raises(TypeError, match=r"improvements must be a list of names"):
         OnlineConfig(dt=1.0, n_inputs=2, mode="improved", improvements=3)
+    with pytest.raises(ValueError, match=r"improvements need mode='improved'"):
+        OnlineConfig(dt=1.0, n_inputs=2, improvements="delay")  # one name, paper mode
+    assert OnlineConfig(dt=1.0, n_inputs=2, mode="improved",
+                        improvements="delay").improvements == ("delay",)
     with pytest.raises(ValueError, match=r"intersample must be one of .* got 'fho'"):
         _config(intersample=("fho", "zoh"))
     state = mfmjax.online.init(cfg)
