@@ -54,12 +54,9 @@ def main() -> None:
     rows = fresh_process.alternated(args, CHILD, lambda r: print(
         f"{r['label']:8s} run {r['run']}: first call {r['first_s']:6.2f} s, warm "
         f"{min(r['warm_s']):.2f}-{max(r['warm_s']):.2f} s, estimates {r['digest']}", flush=True))
-    for label in sorted({r["label"] for r in rows}):
-        sel = [r for r in rows if r["label"] == label]
-        print(f"{label:8s} first call {min(r['first_s'] for r in sel):.2f}-"
-              f"{max(r['first_s'] for r in sel):.2f} s, warm "
-              f"{min(min(r['warm_s']) for r in sel):.2f}-{max(max(r['warm_s']) for r in sel):.2f}"
-              f" s")
+    for label, sel in fresh_process.by_label(rows):
+        print(f"{label:8s} first call {fresh_process.spread(r['first_s'] for r in sel)} s, "
+              f"warm {fresh_process.spread(w for r in sel for w in r['warm_s'])} s")
     Path(args.json).write_text(json.dumps(rows, indent=1))
 
 

@@ -57,11 +57,10 @@ def main() -> None:
         f"{r['label']:8s} run {r['run']}: first call {r['first_s']:6.2f} s, "
         f"{r['programs']:3d} programs; warm median {r['warm_ms']:6.0f} ms "
         f"({r['method']}, n={r['n']}, m={r['m']})", flush=True))
-    for label in sorted({r["label"] for r in rows}):
-        sel = [r for r in rows if r["label"] == label]
-        print(f"{label:8s} first call {min(r['first_s'] for r in sel):.2f}-"
-              f"{max(r['first_s'] for r in sel):.2f} s, warm {min(r['warm_ms'] for r in sel):.0f}-"
-              f"{max(r['warm_ms'] for r in sel):.0f} ms, programs {sel[0]['programs']}")
+    for label, sel in fresh_process.by_label(rows):
+        print(f"{label:8s} first call {fresh_process.spread(r['first_s'] for r in sel)} s, "
+              f"warm {fresh_process.spread((r['warm_ms'] for r in sel), '.0f')} ms, programs "
+              f"{sel[0]['programs']}")
     Path(args.json).write_text(json.dumps(rows, indent=1))
 
 

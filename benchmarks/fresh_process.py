@@ -51,3 +51,15 @@ def alternated(args, child: str, show) -> list[dict]:
             rows.append(r)
             show(r)
     return rows
+
+
+def by_label(rows: list[dict]):
+    """(label, its rows) for each label of `alternated`'s rows ("compare", then "this")."""
+    for label in sorted({r["label"] for r in rows}):
+        yield label, [r for r in rows if r["label"] == label]
+
+
+def spread(values, fmt: str = ".2f", scale: float = 1.0) -> str:
+    """"min-max" of `values` (numbers), each times `scale`."""
+    vals = [scale * v for v in values]
+    return f"{min(vals):{fmt}}-{max(vals):{fmt}}"

@@ -91,10 +91,10 @@ def main() -> None:
         same = all(a["E_b"] == b["E_b"] and a["best_b"] == b["best_b"]
                    for a, b in zip(this, other))
         print(f"grid B's E column and winner identical in both: {same}")
-    for label in sorted({r["label"] for r in rows}):
-        sel = [r for r in rows if r["label"] == label]
-        rng = lambda k, f=1.0: (f"{f * min(r[k] for r in sel):.2f}-"  # noqa: E731
-                                f"{f * max(r[k] for r in sel):.2f}")
+    for label, sel in fresh_process.by_label(rows):
+        def rng(k, f=1.0, sel=sel):
+            return fresh_process.spread((r[k] for r in sel), scale=f)
+
         print(f"{label:8s} grid A first {rng('first_a_s')} s, warm {rng('warm_a_ms')} ms; "
               f"new grid B first {rng('first_b_s')} s, warm {rng('warm_b_ms')} ms; "
               f"peer on B {rng('peer_b_s', 1e3)} ms")
