@@ -37,7 +37,7 @@ import numpy as np
 
 from . import _boundary as _b
 from ._jit import jit
-from ._model import Model
+from ._model import Model, growing_poles
 from ._observers import fit_percent, observe, validation_window
 from ._output_error import free_parameters, order_parameters, with_parameters
 from ._signals import Signals
@@ -312,11 +312,10 @@ def _poles(model):
     return np.roots(np.asarray(model.a, dtype=np.float64)[::-1])
 
 
-def _growing(fn: str, poles, what: str):
+def _growing(fn: str, model, what: str):
     """Warn that the model has poles with Re > 0 (`what`: what that means for `fn`'s result);
     returns the largest growth rate (0 when there is none)."""
-    # Re p above rounding of the roots (np.roots puts an integrator's 0 at +-1e-17 |p|)
-    growing = poles[poles.real > 1e-9 * np.max(np.abs(poles), initial=0.0)]
+    growing = growing_poles(model.a)
     if growing.size == 0:
         return 0.0
     rate = float(np.max(growing.real))
@@ -408,7 +407,7 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
     model, cov = model_and_covariance(model, covariance, "step_response")
     n_points = _b.integer("step_response", "n_points", n_points, lo=2, hi=100_000)
     p = _poles(model)
-    rate = _growing("step_response", p, "its step response grows without bound" + (
+    rate = _growing("step_response", model, "its step response grows without bound" + (
         "; the default horizon shows 3 e-folding times of the fastest growing mode"
         if t_final is None else ""))
     if t_final is None:  # 7 time constants of the slowest stable pole, or 3 e-folding times
@@ -495,7 +494,7 @@ def frequency_response(model, w=None, *, covariance=None, n_points: int = 400):
     """
     _b.eager_only("frequency_response", model, w, covariance)
     model, cov = model_and_covariance(model, covariance, "frequency_response")
-    _growing("frequency_response", _poles(model), "B_k(jw)/A(jw) is defined, but it is no "
+    _growing("frequency_response", model, "B_k(jw)/A(jw) is defined, but it is no "
              "steady-state response (the model has none)")
     if w is None:
         n_points = _b.integer("frequency_response", "n_points", n_points, lo=2, hi=100_000)

@@ -9,7 +9,7 @@ import numpy as np
 
 from ._jit import jit
 from ._linalg import small_matmul
-from ._model import Model
+from ._model import Model, growing_poles
 from ._output_error import (
     free_parameters,
     gauss_newton_covariance,
@@ -47,11 +47,8 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
     J = np.asarray(_sensitivities(base, jax.device_put(u), v, np.float64(dt), bound))[:length]
     J = J[:, np.concatenate([live, theta.size + np.arange(model.n)])]
     std = np.sqrt(np.diag(gauss_newton_covariance(J, sigma**2)))[: theta0.size]
-    a = np.asarray(model.a, dtype=np.float64)
-    poles = np.roots(a[::-1])
-    rate = float(np.max(poles.real, initial=0.0))
-    # (above the roots' rounding: an integrator's 0 comes out at +-1e-17 |p|)
-    if not np.all(np.isfinite(std)) and rate > 1e-9 * np.max(np.abs(poles), initial=0.0):
+    rate = float(np.max(growing_poles(model.a).real, initial=0.0))
+    if not np.all(np.isfinite(std)) and rate > 0:
         warnings.warn(f"cramer_rao(): the model is unstable (growth rate {rate:.3g}): its "
                       f"sensitivities grow e^{rate * (length - 1) * dt:.0f}-fold over the "
                       "experiment and are numerically collinear, so the inf bounds do not mean "

@@ -241,6 +241,13 @@ def _input_names(K: int) -> tuple[str, ...]:
     return tuple(f"u{k + 1}" for k in range(K))
 
 
+def growing_poles(a) -> np.ndarray:
+    """The roots of A(s) (coefficients a_0..a_n, host) with Re > 0 above the roots' rounding
+    (np.roots puts an integrator's 0 at +-1e-17 |p|)."""
+    p = np.roots(np.asarray(a, dtype=np.float64)[::-1])
+    return p[p.real > 1e-9 * np.max(np.abs(p), initial=0.0)]
+
+
 def is_stable(a) -> bool:
     """A(s) (coefficients a_0..a_n, host) has every root in the open left half plane."""
     return bool(np.all(np.roots(np.asarray(a, dtype=np.float64)[::-1]).real < 0))

@@ -27,7 +27,7 @@ from . import _boundary as _b
 from ._boundary import require_x64
 from ._jit import jit
 from ._linalg import conditioning_eigvals, small_matmul, solve
-from ._model import Model, simulation_form
+from ._model import Model, growing_poles, simulation_form
 from ._pytree import replace_fields
 from ._quadrature import EDGE, edge_padded, gregory_weights, record_bucket
 from ._signals import Signals
@@ -186,8 +186,7 @@ def checked(obs: Observation, fn: str, model: Model | None = None,
         if st & Status.UNOBSERVABLE:
             growth = 0.0  # e-foldings of the model's fastest growing mode over the window
             if model is not None and duration is not None and not _b.is_traced(model.a):
-                a = np.asarray(model.a, dtype=np.float64)
-                growth = float(np.max(np.roots(a[::-1]).real, initial=0.0)) * duration
+                growth = float(np.max(growing_poles(model.a).real, initial=0.0)) * duration
             raise ValueError(
                 f"{fn}(): the state is not observable on this window (cond(M0) = "
                 f"{float(obs.cond):.1e}); " + (
