@@ -78,6 +78,7 @@ class SrivcStatus(enum.IntFlag):
     DIVERGED = 2  # simulation error grew DIVERGENCE_FACTOR times over the best iterate
     UNSTABLE_FILTER = 4  # an iterate's A(s) is not Hurwitz: the prefilter 1/A would blow up
     NONFINITE = 8  # non-finite data, or a singular IV system
+    NO_EXCITATION = 16  # a regressor is zero over the record (an input zero throughout)
 
 
 def describe_srivc(status: int) -> str:
@@ -242,9 +243,11 @@ def _core(c, y, u, valid, max_iter, tol, *, modes, has_offset, dt):
         scale = jnp.maximum(jnp.abs(new), 1e-12 * jnp.max(jnp.abs(new)))
         change = jnp.max(jnp.where(free, jnp.abs(new - theta) / scale, 0.0))
         finite = jnp.all(jnp.isfinite(new)) & ~jnp.isnan(E)
+        dead = jnp.any(free & (jnp.diagonal(G) == 0))  # a zero column: the IV system singular
         status = s["status"]
         status = status | jnp.where(~stable, int(SrivcStatus.UNSTABLE_FILTER), 0)
-        status = status | jnp.where(stable & ~finite, int(SrivcStatus.NONFINITE), 0)
+        status = status | jnp.where(stable & dead, int(SrivcStatus.NO_EXCITATION), 0)
+        status = status | jnp.where(stable & ~dead & ~finite, int(SrivcStatus.NONFINITE), 0)
         diverged = stable & finite & (E > DIVERGENCE_FACTOR * jnp.maximum(E_best, floor))
         status = status | jnp.where(diverged, int(SrivcStatus.DIVERGED), 0)
         failed = status != 0
@@ -415,9 +418,19 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
         y = np.asarray(signals.y)
         y0, span = float(np.mean(y[:10])), float(np.ptp(y))
         at_rest = abs(y0) <= 0.1 * span  # else the filters' start from rest leaves a transient
+        zero = [name for name, uk in zip(signals.input_names, np.asarray(signals.u).T)
+                if not np.any(uk)]
+        dead = int(fit.status) & SrivcStatus.NO_EXCITATION
         warnings.warn(f"srivc(): stopped without converging ({describe_srivc(int(fit.status))})"
                       f" after {int(fit.iterations)} iterations; returned the best iterate by "
-                      "simulation error. Check the start model and the data, or raise max_iter"
+                      "simulation error. "
+                      + (f"Input(s) {', '.join(map(repr, zero))} are zero over the whole "
+                         "record: their coefficients cannot be estimated; drop them from the "
+                         "signals and the start model" if dead and zero else
+                         "A regressor is zero over the record (an output that is zero, or an "
+                         "input delayed past the record's end): check the data and the delays"
+                         if dead else
+                         "Check the start model and the data, or raise max_iter")
                       + ("" if at_rest else
                          f"; the filters start from rest at the first sample, and the output "
                          f"starts at {y0:.4g} (its range: {span:.3g}): shift the record by its "

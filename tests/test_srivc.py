@@ -289,6 +289,23 @@ def test_nonfinite_data_flagged(noisy):
     assert np.all(np.isfinite(np.asarray(fit.theta)))
 
 
+def test_an_input_zero_throughout_is_no_excitation_not_nonfinite(noisy):
+    """An all-zero input makes its filtered columns zero: the IV system is singular. The status
+    says no_excitation (it said nonfinite) and the warning names the input and the fix; the
+    start is returned."""
+    sig, start = noisy
+    u = np.asarray(sig.u).copy()
+    u[:, 1] = 0.0
+    bad = Signals(sig.y, u, dt=DT, intersample=MODES, delays=WHOLE, offset=True,
+                  input_names=("valve", "burner"))
+    with pytest.warns(UserWarning, match="no_excitation.*Input\\(s\\) 'burner' are zero over "
+                                         "the whole record.*drop them"):
+        fit = mfmjax.srivc(bad, start)
+    assert int(fit.status) == SrivcStatus.NO_EXCITATION and not bool(fit.converged)
+    assert fit.describe() == "no_excitation"
+    assert np.allclose(np.asarray(fit.theta), _theta(start))  # the start, kept and flagged
+
+
 def test_boundary_errors(noisy):
     sig, start = noisy
     with pytest.raises(TypeError, match="srivc\\(\\): signals must be a Signals"):
