@@ -266,6 +266,16 @@ RESIDUAL_LAGS = 25  # lags of the residual tests (`residuals`), at most a quarte
 
 
 START_RATIO = 1.2  # SRIVC's from-rest residual variance over the observer-started one
+# residual RMS at most this fraction of the output's standard deviation: the model reproduces
+# the data to rounding (noise-free data; float64 simulations agree to about 1e-13 there), so
+# errors below it are ties and the residual tests are rounding noise
+EXACT_FIT = 1e-9
+
+
+def exact_floor(y, dt: float = 1.0) -> float:
+    """E (eq. 17, dt sum e^2) of residuals at `EXACT_FIT` of the spread of `y`."""
+    y = np.asarray(y)
+    return float(EXACT_FIT**2 * dt * np.sum((y - np.mean(y)) ** 2))
 
 
 def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = False,
@@ -312,7 +322,14 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
         stats = residual_tests(e, u, lags)
         bad = [name for name, ok in zip(rec.input_names, stats["independent"]) if ok is False]
         notes = []
-        if bad:
+        exact = np.sum(e * e) <= exact_floor(rec.y)  # the tests would judge rounding errors
+        if exact:
+            bad = []
+            notes.append(f"the model reproduces the record to rounding (residual RMS "
+                         f"{np.sqrt(np.mean(e * e)):.2g}, output std {np.std(rec.y):.3g}): "
+                         "noise-free data, so the residual tests are skipped and the standard "
+                         "errors measure rounding only")
+        elif bad:
             notes.append(f"the residuals are correlated with the input(s) {bad} (residuals("
                          "model, signals), 1 % level): dynamics or a delay the model misses; "
                          "the model and its standard errors are doubtful: widen the orders or "
@@ -324,7 +341,8 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
                          "signals))")
         fit = outs[r].srivc
         ratio = (float(fit.sigma2) / float(np.mean(e * e))  # SRIVC fitted on the record
-                 if whole and outs[r].method == "srivc" and fit is not None else 0.0)
+                 if whole and outs[r].method == "srivc" and fit is not None and not exact
+                 else 0.0)
         if ratio > START_RATIO:
             notes.append(f"SRIVC's simulation from rest leaves {ratio:.2f}x the residual "
                          "variance of the simulation from the observed initial state: the "
@@ -547,9 +565,9 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
             for k, ((r, _), o) in enumerate(zip(pairs, obs)):
                 if o is None or int(o.status) & (Status.OVERFLOW | Status.UNOBSERVABLE):
                     E[k, f], fit[k, f] = np.inf, np.nan  # not usable on the hold-out
-                else:
-                    E[k, f], fit[k, f] = float(o.E), float(fit_percent(y_hold[r],
-                                                                       o.y_sim[:length]))
+                else:  # errors at rounding level tie (`EXACT_FIT`): fewer parameters win
+                    E[k, f] = max(float(o.E), exact_floor(y_hold[r], records[0].dt))
+                    fit[k, f] = float(fit_percent(y_hold[r], o.y_sim[:length]))
         return [(float(np.mean(e)), float(np.mean(q))) if np.all(np.isfinite(e))
                 else (np.inf, np.nan) for e, q in zip(E, fit)]
 
@@ -565,16 +583,17 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
 
     n_hold = [round((h[1] - h[0]) / records[0].dt) + 1 for _, h, _, _ in folds]
 
-    def bic(fits, E_hold: float) -> float:
-        """BIC of a stage on all estimation data: over the folds, its fit part's
-        T_f ln(E_f / (T_f dt)) + k ln T_f (E the simulation error of eq. 17 from rest) and
-        its hold-out block's N_h ln(E_h / (N_h dt)) (predicted, so no parameter term)."""
+    def bic(r, fits, E_hold: float) -> float:
+        """BIC of a stage on record `r`'s estimation data: over the folds, its fit part's
+        T_f ln(E_f / (T_f dt)) + k ln T_f (E the simulation error of eq. 17 from rest, at
+        least `exact_floor`) and its hold-out block's N_h ln(E_h / (N_h dt)) (predicted, so
+        no parameter term)."""
         N_h = sum(n_hold)
         out = N_h * np.log(max(E_hold / (N_h / len(folds) * records[0].dt), 1e-300))
         for (parts, _, _, _), fit in zip(folds, fits):
-            T_f = parts[0].n_samples
+            T_f = parts[r].n_samples
             k = fit.model.structure.n_params - 1 + fit.model.has_offset
-            E = float(fit.E)
+            E = max(float(fit.E), exact_floor(parts[r].y, records[0].dt))
             out += T_f * np.log(max(E / (T_f * records[0].dt), 1e-300)) + k * np.log(T_f) \
                 if np.isfinite(E) else np.inf
         return out
@@ -601,8 +620,8 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         for k, (r, i) in enumerate(cand):
             tried[r].append((*mfm[k], i, "mfm", firsts[k], np.inf))
             if k in sv_score:
-                tried[r].append((*sv_score[k], i, "srivc", sv[k], bic(sv_fits[k],
-                                                                       sv_score[k][0])))
+                tried[r].append((*sv_score[k], i, "srivc", sv[k], bic(r, sv_fits[k],
+                                                                          sv_score[k][0])))
         # the consistent estimator is preferred: plain MFM (biased under output noise) must
         # predict the hold-out better by POLISH_GAIN, as output error must to replace SRIVC;
         # a larger structure must beat a smaller one by Akaike's FPE factor (parsimony), and
