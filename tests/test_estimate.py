@@ -77,10 +77,11 @@ def test_estimate_says_when_its_model_is_unstable():
 
 def test_estimate_on_noise_free_data_keeps_the_true_structure_and_skips_residual_tests():
     """Noise-free data: every structure that nests the truth fits to rounding (hold-out fit
-    100.0 %), and errors of 1e-27 against 5e-28 decided the structure (a b_12 of -4e-15,
-    "significant" at 27 standard errors, on an n = 2, m = 1 plant), the rounding-level
+    100.0 %), and rounding-level errors decided the structure: here the hold-out winner was
+    n = 2, m = 1 (SRIVC did not converge on it, so a fallback came back), on an n = 2, m = 1
+    plant an extra b_12 of -4e-15 ("significant" at 27 standard errors); the rounding-level
     residuals "failed" the independence test (a warning: "widen the orders") and SRIVC's
-    from-rest ratio of two rounding errors (5516x) replaced it by output error. Errors at
+    from-rest ratio of two rounding errors (6.2e6x) replaced it by output error. Errors at
     `EXACT_FIT` (1e-9 of the output's spread; the simulations agree to about 1e-13) now tie,
     so fewer parameters win, and a note says the data are reproduced to rounding."""
     clean = simulated_experiment(TRUE, dt=DT, n_samples=T, seed=7)
