@@ -61,6 +61,7 @@ from ._signals import Signals as Signals  # noqa: E402
 from ._simulate import simulate as simulate  # noqa: E402
 from ._solve import closed_form as closed_form  # noqa: E402
 from ._solve import constrained_solve as _constrained_solve  # noqa: E402
+from ._srivc import SrivcFit as SrivcFit  # noqa: E402
 from ._srivc import srivc as srivc  # noqa: E402
 from ._statespace import StateSpace as StateSpace  # noqa: E402
 from ._statespace import state_space as state_space  # noqa: E402
@@ -83,7 +84,8 @@ __all__ = [  # the public names (tests/test_fuzz.py covers each one)
     "final_state", "fit_percent", "gram", "identify",
     "initial_state", "kernel_weights", "load_covariance", "load_model", "modulated_signals", "moving_final_states",
     "observe", "online", "output_error", "performance_index", "phi", "phi_integral", "phi_scaled",
-    "refine", "save_model", "scores", "search", "simulate", "srivc", "state_space", "to_control",
+    "refine", "save_model", "scores", "search", "simulate", "srivc", "SrivcFit", "state_space",
+    "to_control",
     "to_scipy", "Comparison", "FrequencyResponse", "Residuals", "StepResponse", "compare",
     "frequency_response", "residuals", "step_response", "Trend", "detrend", "resample",
 ]

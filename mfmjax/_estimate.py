@@ -1025,4 +1025,11 @@ def estimate_outputs(records, **kwargs) -> tuple[Estimate, ...]:
         if not same:
             raise ValueError(f"estimate_outputs(): record {i} does not share record 0's inputs "
                              "and sampling; give one Signals per output of one experiment")
+        for what, mine, theirs in [("intersample rules", r.intersample, first.intersample),
+                                   ("input names", r.input_names, first.input_names),
+                                   ("start time t0", r.t0, first.t0)]:
+            if mine != theirs:  # t0 places identify= windows given in absolute time
+                raise ValueError(f"estimate_outputs(): record {i} has other {what} than "
+                                 f"record 0 ({mine!r} against {theirs!r}); build every output's "
+                                 "record from one experiment with the same settings")
     return tuple(estimate(r, **kwargs) for r in records)

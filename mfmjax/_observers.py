@@ -409,7 +409,11 @@ def fit_percent(y, y_sim):
     if not traced:
         require_x64("fit_percent")
         y = _b.array("fit_percent", "y", y, ndim=1)
-        y_sim = _b.array("fit_percent", "y_sim", y_sim, ndim=1)
+        y_sim = _b.array("fit_percent", "y_sim", y_sim, ndim=1, finite=False)
+        if y_sim.size and not np.all(np.isfinite(y_sim)):
+            raise ValueError(f"fit_percent(): y_sim has a NaN or inf at sample "
+                             f"{int(np.argmin(np.isfinite(y_sim)))}: the simulation did not stay "
+                             "finite (an unstable or diverged model?); its fit is undefined")
         if y.shape != y_sim.shape or y.size < 2:
             raise ValueError(f"fit_percent(): y and y_sim must be 1-D of equal length >= 2 "
                              f"(got shapes {y.shape} and {y_sim.shape})")

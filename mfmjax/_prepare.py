@@ -34,6 +34,7 @@ OUTPUT_RULES = ("linear", "cubic")
 _GRID_RTOL = 1e-9  # a grid time within 1e-9 dt of a sample time counts as that sample time
 _GAP = 10.0  # a step longer than this many median steps (and grid steps) is a logging gap
 _COARSE = 1.5  # dt above this many median steps of a record: warn about aliasing
+_FINE = 10.0  # dt below the output's median step / this: interpolated, or a unit slip
 
 
 # -- detrending ---------------------------------------------------------------------------------
@@ -119,6 +120,13 @@ class Trend(eqx.Module):
         order = swapped_inputs(self.input_names, signals.input_names)
         if order:  # the lines of one input would be removed from another
             raise ValueError(f"Trend.apply(): {order}")
+        names = (signals.output_name, tuple(signals.input_names))
+        if names != (self.output_name, tuple(self.input_names)):
+            warnings.warn(f"Trend.apply(): the trend was fitted on output "
+                          f"{self.output_name!r}, inputs {list(self.input_names)}, and the record "
+                          f"has output {signals.output_name!r}, inputs "
+                          f"{list(signals.input_names)}: their lines are removed in that order; "
+                          "check that the record holds the same signals", stacklevel=2)
         t = np.asarray(signals.t)
         y = np.asarray(signals.y) - np.asarray(self.output_line(t))
         u = np.asarray(signals.u) - np.asarray(self.input_lines(t))
@@ -364,6 +372,13 @@ def resample_arrays(fn: str, t, y, u, *, dt, intersample="foh", output_rule: str
                 "faster content aliases without a low-pass filter: filter first or choose a "
                 "smaller dt", stacklevel=3)
             break
+    median = float(np.median(np.diff(t)))
+    if dt * _FINE < median:  # 199,003 samples from 200 rows logged in ms with dt in s
+        warnings.warn(
+            f"{fn}(): dt={dt:g} is {median / dt:.3g}x finer than the output's median step "
+            f"({median:g}): all but one in {median / dt:.3g} samples are interpolated, not "
+            "measured; is the time column in another unit than dt (ms against s)? Give dt in "
+            "the time column's unit", stacklevel=_b.user_stacklevel())
     for name, t_k in [(output_name, t)] + [(s[0], s[1]) for s in series]:
         gaps = np.diff(t_k)
         big = int(np.argmax(gaps))

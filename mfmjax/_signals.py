@@ -7,6 +7,7 @@ batch axes go in front. Sample k is at time `t0 + k * dt`.
 from __future__ import annotations
 
 import csv
+import re
 import warnings
 from collections.abc import Sequence
 
@@ -111,7 +112,7 @@ def _refuse_output_as_input(y, u, output_name, names):
     model degenerate (y = u explains the data with any denominator): refuse it."""
     yc = y - y.mean()
     ny = np.linalg.norm(yc)
-    if ny == 0:
+    if ny == 0 or y.shape[0] < 3:  # any two 2-sample columns are perfectly correlated
         return
     for k in range(u.shape[1]):
         uc = u[:, k] - u[:, k].mean()
@@ -257,8 +258,9 @@ def _at_operating_point(x, start: float | None = None) -> tuple[bool, str]:
     if abs(start) <= 0.1 * span:
         return False, (f"starts at rest at zero, at {start:.4g} against a range of {span:.4g}: "
                        "a step or impulse response")
-    return True, f"sits at {mean:.4g}, {abs(mean) / max(std, 1e-300):.3g} standard deviations " \
-        "from zero"
+    if std == 0:  # a constant away from zero (1.16e+303 standard deviations, it said)
+        return True, f"is constant at {mean:.4g}"
+    return True, f"sits at {mean:.4g}, {abs(mean) / std:.3g} standard deviations from zero"
 
 
 class Signals(eqx.Module):
@@ -344,6 +346,10 @@ class Signals(eqx.Module):
         if t is not None:
             if dt is not None:
                 raise ValueError("Signals(): give either t (a time column) or dt, not both")
+            if t0 != 0.0:  # it was ignored: t[0] is the start
+                raise ValueError("Signals(): give either t (a time column, whose first value "
+                                 "is the start) or t0, not both")
+            narrow = np.dtype(getattr(t, "dtype", np.float64))
             t = _b.array("Signals", "t", t, finite=False)
             if t.shape != (T,):
                 raise ValueError(
@@ -360,7 +366,12 @@ class Signals(eqx.Module):
                 bad = int(np.argmax(steps <= 0)) + 1 if T >= 2 else 0
                 raise ValueError(
                     f"Signals(): time must be strictly increasing (row {bad} is not); "
-                    "sort the record or drop duplicate rows"
+                    + (f"the time column is {narrow.name}, whose precision at "
+                       f"{float(np.max(np.abs(t))):.3g} is "
+                       f"{float(np.spacing(np.max(np.abs(t)).astype(narrow))):.3g}: give it "
+                       "as float64 (or as times since the start)"
+                       if narrow.kind == "f" and narrow.itemsize < 8 else
+                       "sort the record or drop duplicate rows")
                 )
             dt = float((t[-1] - t[0]) / (T - 1))
             # jitter beyond the time stamps' own rounding (epoch seconds near 1.7e9 carry
@@ -444,6 +455,10 @@ class Signals(eqx.Module):
         _b.window("Signals.window", "window", (t0, t1))
         T, dt = self.n_samples, self.host_dt  # a number also for stacked records under vmap
         a, b = round((float(t0) - self.t0) / dt), round((float(t1) - self.t0) / dt)
+        if 0 <= a == b <= T - 1:
+            raise ValueError(f"Signals.window(): ({float(t0):g}, {float(t1):g}) rounds to one "
+                             f"sample (t = {self.t0 + a * dt:g}) of the grid of step {dt:g}; a "
+                             "window needs at least 2 samples: widen it")
         if not 0 <= a < b <= T - 1:
             raise ValueError(f"Signals.window(): ({float(t0):g}, {float(t1):g}) must lie inside "
                              f"the record [{self.t0:g}, {self.t0 + (T - 1) * dt:g}]")
@@ -539,7 +554,10 @@ class Signals(eqx.Module):
         A non-uniform time column is refused unless `resample=dt` is given: the columns are then
         put on the uniform grid of step dt from the first time (`mfmjax.resample`: inputs by
         their `intersample` rule, the output by linear interpolation)."""
-        inputs = list(inputs)
+        inputs = _column_list(inputs)
+        if time is not None and "t0" in kwargs:
+            raise ValueError(f"{source}: give either a time column (time=..., whose first value "
+                             "is the start) or t0, not both")
         available = list(columns)
         for role, name in [("output", output)] + [("inputs", c) for c in inputs] + (
             [("time", time)] if time is not None else []
@@ -605,6 +623,7 @@ class Signals(eqx.Module):
     def from_csv(cls, path, *, output: str, inputs: Sequence[str] = (), time=None, dt=None,
                  names: Sequence[str] | None = None, **kwargs) -> Signals:
         """Read a CSV file with a header row (or headerless, columns named by `names`)."""
+        inputs = _column_list(inputs)
         used = [output, *inputs] + ([time] if time is not None else [])
         columns = read_csv(path, names, used=[str(c) for c in used])
         return cls.from_columns(columns, output=output, inputs=inputs, time=time, dt=dt,
@@ -619,16 +638,29 @@ class Signals(eqx.Module):
         Date-times (datetime64, with or without a time zone) and durations (timedelta64) are
         read as seconds since the first one, so `dt`, `h` and the delays are in seconds;
         numbers are taken in their own unit."""
+        # labels are matched as text: output=1 finds the column labelled 1
+        output, inputs = str(output), [str(c) for c in _column_list(inputs)]
+        time = None if time is None else str(time)
         cols = {str(c): c for c in df.columns}
-        if time is not None and str(time) not in cols and (
+        if time is not None and time not in cols and (
                 str(df.index.name) == str(time) or (df.index.name is None and time == "index")):
             df = df.rename_axis(str(time)).reset_index()  # the index (time="index": unnamed)
             cols = {str(c): c for c in df.columns}
         wanted = {str(c) for c in [output, *inputs] + ([time] if time is not None else [])}
+        dup = sorted({str(c) for c in df.columns[df.columns.duplicated()]} & wanted)
+        if dup:
+            raise ValueError(f"DataFrame: the column name(s) {dup} occur more than once: rename "
+                             "the columns (df.columns = [...]) so that each is named once")
         columns = {name: (_dataframe_column(df[c], name) if name in wanted else None)
                    for name, c in cols.items()}
         return cls.from_columns(columns, output=output, inputs=inputs, time=time, dt=dt,
                                 source="DataFrame", **kwargs)
+
+
+def _column_list(inputs) -> list:
+    """The input column names as a list: one name given as a string is one column (it was
+    split into its letters: inputs="heat" read columns 'h', 'e', ...)."""
+    return [inputs] if isinstance(inputs, str) else list(inputs)
 
 
 def _dataframe_column(series, name: str) -> np.ndarray:
@@ -723,7 +755,9 @@ def read_csv(path, names: Sequence[str] | None = None, *,
         first_line = first_line.lstrip()[1:]  # numpy.savetxt's header: "# t,y,u"
     probe = _first_line(rest)[0] if names is None else first_line  # a data line: names may
     probe = probe or first_line  # hold ',' ("T [degC, PV]") or ';' ("T;PV")
-    if probe.count(";") > probe.count(","):
+    # a European export: "t;y;u" over "0;1,5;2,5" (as many ',' as ';' in the data line)
+    if any(line.count(";") > line.count(",") for line in (probe, first_line)) or (
+            ";" in probe and probe.count(";") >= probe.count(",")):
         raise ValueError(
             f"{path}: fields are separated by ';' (line 1: {first_line[:40]!r}); mfmjax reads "
             "comma-separated files with '.' as the decimal point: re-export the file as CSV, or "
@@ -735,7 +769,7 @@ def read_csv(path, names: Sequence[str] | None = None, *,
 
     def split(line, n=None):
         if comma:
-            cells = next(csv.reader([line]))
+            cells = next(csv.reader([line], skipinitialspace=True))  # `"t", "y"`
         elif tab:  # a trailing tab, or data separated by spaces under a tab header, read too
             cells = line.split("\t")
             if n is not None and len(cells) != n:
@@ -750,7 +784,11 @@ def read_csv(path, names: Sequence[str] | None = None, *,
     else:
         header, body, first = [str(n) for n in names], text, 1
     if len(set(header)) != len(header):
-        raise ValueError(f"{path}: duplicate column names {header}")
+        headless = names is None and all(_is_number(c) for c in header)  # "0,0,1": at rest
+        raise ValueError(f"{path}: duplicate column names {header}"
+                         + ("; the first line holds numbers, so the file has no header: give "
+                            "the column names (names=[...], or --names on the command line)"
+                            if headless else ""))
     if not body.strip():
         raise ValueError(f"{path}: no data rows after the header")
     data = _parse_fast(body, "," if comma else "\t" if tab else None, len(header))
@@ -797,6 +835,8 @@ def _csv_column(path, name: str, cells: list, linenos: list, first: int) -> np.n
     if not bad:
         return out
     i = bad[0]
+    unit_row = ("the file has a header row: drop names= (--names), which is for files "
+                "without one" if first == 1 else "a unit row under the header? remove it")
     hint = ("missing values may be empty, NaN or #N/A; a time column may hold ISO 8601 "
             "date-times (2024-03-05 08:00:00), read as seconds since the first; write the "
             "decimal point as '.'")
@@ -812,14 +852,21 @@ def _csv_column(path, name: str, cells: list, linenos: list, first: int) -> np.n
                     "numbers or to ISO 8601 (2024-03-05 08:00:00); from_csv and the command "
                     "line read only the columns given as output, inputs and time")
         elif failed == [bad[0]] and linenos[bad[0]] == first:
-            hint = "a unit row under the header? remove it"
+            hint = unit_row
         else:  # the first cell that is not a date-time like the others
             i = failed[0]
     elif bad == [i] and linenos[i] == first:
-        hint = "a unit row under the header? remove it"
+        hint = unit_row
     cell = cells[i]
+    if _DECIMAL_COMMA.match(cell):  # "1,5" (tab-separated, or quoted in a comma file)
+        hint = ("a decimal comma? mfmjax reads '.' as the decimal point: re-export the file, "
+                "or read it with pandas.read_csv(path, sep=..., decimal=',') and "
+                "Signals.from_dataframe")
     raise ValueError(f"{path}: line {linenos[i]} has a non-numeric value {cell[:20]!r} in "
                      f"column {name!r}; every row after the header must hold numbers ({hint})")
+
+
+_DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+([eE][+-]?\d+)?$")
 
 
 def _iso_stamp(cell: str):

@@ -214,6 +214,10 @@ def test_fit_percent_of_constant_output_is_undefined():
                                          "undefined"):
         mfmjax.fit_percent(np.ones(10), np.zeros(10))
     assert mfmjax.fit_percent(np.arange(4.0), np.arange(4.0)) == 100.0
+    # a diverged simulation: not "remove or interpolate non-finite samples" (the data's advice)
+    with pytest.raises(ValueError, match=r"fit_percent\(\): y_sim has a NaN or inf at sample 2: "
+                                         "the simulation did not stay finite"):
+        mfmjax.fit_percent(np.arange(4.0), np.array([0.0, 1.0, np.inf, np.nan]))
 
 
 @pytest.mark.parametrize("bad,match", [

@@ -76,3 +76,8 @@ def test_daisy_errors(tmp_path):
         daisy("nope")
     with pytest.raises(FileNotFoundError, match="MFMJAX_DATA"):
         daisy("dryer", path=str(tmp_path / "missing.dat"))
+    if os.path.isdir(SHARED):  # the sample-index column was accepted as the output
+        with pytest.raises(ValueError, match=r"daisy\(\): dryer has no output column 'k'; its "
+                                             r"outputs are \['dry_bulb', 'wet_bulb', "
+                                             r"'moisture'\]"):
+            daisy("dryer", output="k")

@@ -344,7 +344,7 @@ def test_fuzz_output_error(window, max_steps, sigma):
         assert len(names) == np.asarray(std).size and np.all(np.isfinite(std))
 
 
-@fuzzes("srivc")
+@fuzzes("srivc", "SrivcFit")
 @FEW
 @given(max_iter=st.one_of(st.just(3), junk), tol=st.one_of(st.just(1e-8), junk))
 @example(max_iter=3, tol=1e-8)
@@ -352,6 +352,7 @@ def test_fuzz_srivc(max_iter, tol):
     ok, fit = outcome(lambda: mfmjax.srivc(record(), fitted(), max_iter=max_iter, tol=tol),
                       ["srivc()"])
     if ok:
+        assert isinstance(fit, mfmjax.SrivcFit)
         honest_model(fit.model)
 
 

@@ -90,7 +90,8 @@ def test_trend_apply_to_a_second_record_and_restore():
     with pytest.raises(ValueError, match=r"Trend.apply\(\): the record has 1 input"):
         trend.apply(Signals(x2[:, 0], x2[:, 1], dt=later.dt))
     # named inputs in another order: each input's line would go to the other (a column 0.62
-    # off, unsaid); refused. The same names in order, or other names, are taken as given.
+    # off, unsaid); refused. The same names in order are taken as given; other names (or
+    # another output name) are taken in order with a warning (they were taken silently).
     named = lambda names: Signals(x2[:, 0], x2[:, 1:], dt=later.dt, t0=later.t0,  # noqa: E731
                                   input_names=names)
     _, by_name = mfmjax.detrend(Signals(np.asarray(sig.y), np.asarray(sig.u), dt=sig.dt,
@@ -100,7 +101,10 @@ def test_trend_apply_to_a_second_record_and_restore():
         by_name.apply(named(["feed", "valve"]))
     np.testing.assert_array_equal(np.asarray(by_name.apply(named(["valve", "feed"])).u),
                                   np.asarray(out.u))
-    by_name.apply(named(["a", "b"]))
+    with pytest.warns(UserWarning, match=r"Trend.apply\(\): the trend was fitted on output "
+                      r"'y', inputs \['valve', 'feed'\], and the record has output 'y', "
+                      r"inputs \['a', 'b'\]: their lines are removed in that order"):
+        by_name.apply(named(["a", "b"]))
 
 
 def test_detrend_boundary():

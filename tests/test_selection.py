@@ -330,6 +330,13 @@ def test_estimate_outputs_one_model_per_output():
         assert np.max(np.abs(got - want)) < 1e-2 * np.ptp(want)
     with pytest.raises(ValueError, match=r"estimate_outputs\(\): record 1 does not share"):
         mfmjax.estimate_outputs([s1, Signals(y2[:-5], u[:-5], dt=DT)], h=2.0)
+    # other rules or another start time (identify= windows are absolute times) were accepted
+    for other_record, what in [(Signals(y2, u, dt=DT, intersample=["zoh"]), "intersample rules"),
+                               (Signals(y2, u, dt=DT, t0=5.0, intersample=["foh"]),
+                                "start time t0")]:
+        with pytest.raises(ValueError, match=rf"estimate_outputs\(\): record 1 has other "
+                                             rf"{what} than record 0"):
+            mfmjax.estimate_outputs([s1, other_record], h=2.0)
 
 
 def test_cli_identify_and_validate_windows(tmp_path, capsys):

@@ -221,3 +221,116 @@ def test_a_time_column_with_a_missing_time_is_refused_by_row(tmp_path):
         Signals.from_csv(p, output="temp", inputs=["fuel"], time="t")
     s = Signals.from_csv(p, output="temp", inputs=["fuel"], time="t", resample=1.0)
     np.testing.assert_array_equal(np.asarray(s.y), [1, 2, 3, 4, 5])
+
+
+def _csv(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_one_input_name_as_a_string_is_one_column(tmp_path):
+    """inputs="heat" was split into its letters ("unknown column 'h'"), and inputs="uv" over
+    columns t, y, u, v silently read two inputs u and v."""
+    pd = pytest.importorskip("pandas")
+    t = np.arange(40) * 0.5
+    rows = "".join(f"{a},{np.sin(a)},{np.cos(a)},{a % 3}\n" for a in t)
+    path = _csv(tmp_path, "h.csv", "t,y,heat,uv\n" + rows)
+    s = Signals.from_csv(path, output="y", inputs="heat", time="t")
+    assert s.input_names == ("heat",) and s.u.shape == (40, 1)
+    assert Signals.from_csv(path, output="y", inputs="uv", time="t").input_names == ("uv",)
+    df = pd.read_csv(path)
+    assert Signals.from_dataframe(df, output="y", inputs="heat", time="t").input_names == \
+        ("heat",)
+
+
+def test_dataframe_labels_are_matched_as_text_and_duplicates_refused():
+    """Integer labels: output=1 said "unknown column 1 ... the file has no header: give
+    names=[...]" (DataFrames take no names=); a used duplicated label crashed with
+    AttributeError."""
+    pd = pytest.importorskip("pandas")
+    t = np.arange(30) * 0.1
+    df = pd.DataFrame({0: t, 1: np.sin(t), 2: np.cos(t)})
+    s = Signals.from_dataframe(df, output=1, inputs=[2], time=0)
+    assert (s.output_name, s.input_names, s.dt) == ("1", ("2",), pytest.approx(0.1))
+    assert np.array_equal(np.asarray(s.y), np.sin(t))
+    dup = pd.DataFrame(np.c_[t, np.sin(t), np.cos(t), t], columns=["t", "y", "u", "u"])
+    with pytest.raises(ValueError, match=r"DataFrame: the column name\(s\) \['u'\] occur more "
+                                         "than once: rename"):
+        Signals.from_dataframe(dup, output="y", inputs=["u"], time="t")
+    assert Signals.from_dataframe(dup, output="y", time="t").n_inputs == 0  # unused: fine
+
+
+@pytest.mark.parametrize("text,match", [
+    ("t;y;u\n0;1,5;2,5\n1;1,6;2,7\n", "fields are separated by ';'.*decimal=','"),
+    ("time;T [degC, PV];P\n0;1,5;2,5\n1;1,6;2,7\n", "fields are separated by ';'"),
+    ("t\ty\tu\n0\t1,5\t2,5\n1\t1,6\t2,7\n", "'1,5'.*a decimal comma\\?.*decimal=','"),
+    ('t,y,u\n0,"1,5",2.5\n1,"1,6",2.7\n', "'1,5'.*a decimal comma\\?"),
+])
+def test_decimal_commas_are_named(tmp_path, text, match):
+    """A European export (';' and decimal commas) said "unknown column 'y'; available:
+    ['t;y;u']", "line 2 has 3 fields but the header has 2", or "the column holds text"."""
+    path = _csv(tmp_path, "eu.csv", text)
+    output, inputs, time = ("T [degC, PV]", ["P"], "time") if "PV" in text else \
+        ("y", ["u"], "t")
+    with pytest.raises(ValueError, match=match):
+        Signals.from_csv(path, output=output, inputs=inputs, time=time)
+
+
+def test_misleading_causes_are_named_rightly(tmp_path):
+    """Each refusal names its real cause: a header read with names= ("a unit row under the
+    header?"), a window that rounds to one sample ("must lie inside the record"), float32
+    epoch times ("drop duplicate rows"), t0 beside a time column (ignored, or a raw
+    TypeError with resample=), and a two-row record ("input 'u' is the output 'y' itself")."""
+    path = _csv(tmp_path, "hdr.csv", "t,y,u\n0,1,2\n1,2,3\n2,3,1\n")
+    with pytest.raises(ValueError, match="line 1 .*the file has a header row: drop names="):
+        Signals.from_csv(path, output="y", inputs=["u"], time="t", names=["t", "y", "u"])
+    y, u = _ok()
+    s = Signals(y, u, dt=1.0, t0=2.0)
+    with pytest.raises(ValueError, match=r"\(11.99, 12\) rounds to one sample \(t = 12\) of the "
+                                         "grid of step 1; a window needs at least 2 samples"):
+        s.window(11.99, 12.0)
+    epoch = (1.7e9 + 0.5 * np.arange(50)).astype(np.float32)
+    with pytest.raises(ValueError, match="the time column is float32, whose precision at "
+                                         "1.7e\\+09 is 128: give it as float64"):
+        Signals(y, u, t=epoch)
+    with pytest.raises(ValueError, match="give either t .* or t0, not both"):
+        Signals(y, u, t=np.arange(50.0), t0=5.0)
+    with pytest.raises(ValueError, match="give either a time column .* or t0, not both"):
+        Signals.from_csv(path, output="y", inputs=["u"], time="t", t0=5.0, resample=0.5)
+    two = Signals(np.array([1.0, 3.0]), np.array([[2.0], [1.0]]), dt=2.0)
+    assert two.n_samples == 2
+
+
+def test_a_time_column_in_ms_resampled_in_seconds_warns(tmp_path):
+    """Times in ms with resample=0.5 (meant in s) built 39,801 interpolated samples from 200
+    rows without a word (only a grid coarser than the median step warned)."""
+    t = np.arange(200) * 100.0  # ms
+    rows = "".join(f"{a},{np.sin(a / 1e3)},{np.sign(np.sin(a / 7e2))}\n" for a in t)
+    path = _csv(tmp_path, "ms.csv", "time,y,u\n" + rows)
+    with pytest.warns(UserWarning, match=r"dt=0.5 is 200x finer than the output's median step "
+                                         r"\(100\).*another unit than dt"):
+        s = Signals.from_csv(path, output="y", inputs=["u"], time="time", resample=0.5)
+    assert s.n_samples == 39801
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a grid within 10x of the step: no warning
+        Signals.from_csv(path, output="y", inputs=["u"], time="time", resample=50.0)
+
+
+def test_a_constant_output_away_from_zero_says_so_and_quoted_names_are_read(tmp_path):
+    s = Signals(np.full(50, 7.0), np.sin(np.arange(50.0)), dt=1.0)
+    assert "is constant at 7" in s.offset_note and "e+303" not in s.offset_note
+    path = _csv(tmp_path, "q.csv", 't, "y", "u"\n0, 1, 2\n1, 2, 3\n2, 3, 1\n3, 1, 1\n')
+    assert Signals.from_csv(path, output="y", inputs="u", time="t").input_names == ("u",)
+
+
+def test_a_headless_file_starting_at_rest_gets_the_names_hint(tmp_path):
+    """A first row with repeated values ("0,0,1", a record at rest) said only "duplicate
+    column names ['0', '0', '1']": it gets the no-header hint as other numeric rows do."""
+    path = _csv(tmp_path, "rest.csv", "0,0,1\n1,0.5,1\n2,0.8,1\n")
+    with pytest.raises(ValueError, match=r"duplicate column names \['0', '0', '1'\]; the first "
+                                         "line holds numbers, so the file has no header: give "
+                                         r"the column names \(names="):
+        Signals.from_csv(path, output="y", inputs=["u"], time="t")
+    s = Signals.from_csv(path, output="y", inputs=["u"], time="t", names=["t", "y", "u"])
+    assert s.n_samples == 3

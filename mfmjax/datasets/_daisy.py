@@ -63,13 +63,15 @@ def daisy(name: str, *, path=None, offset: bool = True, output: str | None = Non
     Unlike `Signals`, whose default `offset=None` lets the data decide, the loader's default
     is `offset=True` (the term estimated, whatever the record's level); pass `offset=None` for
     the data's decision, as `benchmarks/real_data.py` does. Times start at t0 = 0 at the first
-    row (the files' own time or sample-index column, which starts at 1, is not read)."""
+    row (the files' own time or sample-index column, `t` or `k`, is not read)."""
     if name not in DAISY:
         raise ValueError(f"daisy(): unknown dataset {name!r}; use one of {sorted(DAISY)}")
     folder, file, cols, out, inputs, dt, inter, _ = DAISY[name]
     data = read_csv(_locate(folder, file, path), names=cols)
     out = output or out
-    if out not in data or out in inputs:
-        raise ValueError(f"daisy(): {name} has no output column {out!r}")
+    outputs = [c for c in cols if c not in inputs and c not in ("t", "k")]
+    if out not in outputs:  # the time or sample-index column is no output
+        raise ValueError(f"daisy(): {name} has no output column {out!r}; its outputs are "
+                         f"{outputs}")
     return Signals(data[out], np.column_stack([data[c] for c in inputs]), dt=dt,
                    intersample=inter, offset=offset, output_name=out, input_names=inputs)
