@@ -336,9 +336,10 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
                          "the delay grid")
         elif stats["white"] is False:
             notes.append("the residuals are not white (Box-Pierce, 1 % level): the output "
-                         "noise is coloured, or the model misses dynamics; the standard errors "
-                         "assume white noise and are then too small (see residuals(model, "
-                         "signals))")
+                         "noise is coloured, or the model misses dynamics"
+                         + ("" if outs[r].method == "mfm" else  # MFM: no standard errors
+                            "; the standard errors assume white noise and are then too small")
+                         + " (see residuals(model, signals))")
         fit = outs[r].srivc
         ratio = (float(fit.sigma2) / float(np.mean(e * e))  # SRIVC fitted on the record
                  if whole and outs[r].method == "srivc" and fit is not None and not exact

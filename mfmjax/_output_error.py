@@ -58,10 +58,9 @@ class OutputErrorFit(eqx.Module):
                          f"arbitrary): {', '.join(lost)}")
         if self.stabilised:
             lines.append("start was unstable: its right-half-plane poles were mirrored first")
-        lines.append(("converged" if self.converged else
-                      f"NOT CONVERGED ({self.result} after {self.steps} steps): the estimate is "
-                      "the best iterate; raise max_steps or start from a better model")
-                     + f" ({self.result})")
+        lines.append(f"converged ({self.result})" if self.converged else
+                     f"NOT CONVERGED ({self.result} after {self.steps} steps): the estimate is "
+                     "the best iterate; raise max_steps or start from a better model")
         return "\n".join(lines)
 
 
@@ -333,6 +332,9 @@ def gauss_newton_covariance(J, sigma2: float) -> np.ndarray:
     an infinite variance and NaN covariances, where a pseudo-inverse gave 0, i.e. "perfectly
     determined"."""
     J = np.asarray(J, dtype=np.float64)
+    if J.shape[0] < J.shape[1]:  # fewer rows than unknowns: zero rows give the thin SVD's Vt
+        # the whole null space (without them no parameter came out undetermined)
+        J = np.concatenate([J, np.zeros((J.shape[1] - J.shape[0], J.shape[1]))])
     scale = np.linalg.norm(J, axis=0)
     dead = ~(scale > 0)
     scale = np.where(dead, 1.0, scale)

@@ -219,6 +219,16 @@ def test_cramer_rao_undetermined_parameters_are_infinite_and_shapes_checked():
         mfmjax.cramer_rao(two, np.ones(400), x0, dt=0.1, sigma=0.05)
     with pytest.raises(ValueError, match=r"x0 must have shape \(2,\)"):
         mfmjax.cramer_rao(model, np.ones((400, 1)), [0.2, -0.1, 0.0], dt=0.1, sigma=0.05)
+    # fewer samples than unknowns (6 here: a_0, a_1, b_10, b_11, x0): the thin SVD left out
+    # the null space, so 2-5 samples gave finite bounds ([6.8e4, 848, ...] at 2); with the
+    # input switching (after 60 samples here) they are finite and fall with the length
+    u = np.repeat(np.random.default_rng(0).choice([-1.0, 1.0], 21), 20)[:400, None]
+    for length in (2, 5):
+        assert np.all(np.isinf(mfmjax.cramer_rao(model, u, x0, dt=0.1, sigma=0.05,
+                                                 length=length)[1]))
+    short, longer = (mfmjax.cramer_rao(model, u, x0, dt=0.1, sigma=0.05, length=k)[1]
+                     for k in (120, 400))
+    assert np.all(np.isfinite(short)) and np.all(longer < short)
 
 
 def test_cramer_rao_of_an_unstable_model_says_why_its_bounds_are_infinite():
