@@ -703,6 +703,26 @@ def _ok_columns(config: OnlineConfig, res) -> list:
     return ok
 
 
+def _no_candidate(config: OnlineConfig, results: list) -> str:
+    """The rejection when no candidate of `results` passes `_ok_columns`, naming why the
+    best by E failed: its status, or (status ok) its poles' damping."""
+    text = "rejected: no candidate had status ok" + (
+        f" and poles of damping ratio >= {config.min_damping:g}"
+        if "damping" in config.improvements else "")
+    tops = [(float(r.columns["E"][r.rank[0]]), int(r.columns["status"][r.rank[0]]),
+             r.columns["a"][r.rank[0]], int(r.columns["n"][r.rank[0]]))
+            for r in results if len(r)]
+    if not tops:
+        return text
+    _, status, a, n = min(tops, key=lambda x: (not math.isfinite(x[0]), x[0]))
+    if status:
+        return text + f" (the best by E: {describe(status)})"
+    poles = np.roots(np.asarray(a, dtype=np.float64)[: n + 1][::-1])
+    zeta = float(np.min(-poles.real / np.maximum(np.abs(poles), 1e-300)))
+    return text + f" (the best by E: status ok, a pole of damping ratio {zeta:.3g})"
+
+
+
 def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
     """Improved mode's identification at the end of interval j on the last `w` intervals.
 
@@ -715,7 +735,7 @@ def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
     (final-state observer, then simulation): data none of them was fitted on. The winner's
     settings (window length, structure, N, M, h, delays) are then fitted again on the newest
     window. Returns (best row or None, E of the current model or None, E of the best, the fit
-    window, what the E values are on)."""
+    window, what the E values are on; for None: the rejection in words)."""
     c = state.config
     S, R = c.samples, c.history
     delays = _delay_grid(c, state.model["delays"])
@@ -732,7 +752,7 @@ def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
         sig, plan, res, window = _identify_window(state, j, w, delays)
         ok = _ok_columns(c, res)
         if not ok:
-            return None, None, None, window, "fit window"
+            return None, None, None, window, _no_candidate(c, [res])
         i = ok[0]
         E_cur = (float(_score(sig, plan.static, plan.where, current)["E"])
                  if current is not None else None)
@@ -744,13 +764,14 @@ def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
         h_s = tuple(v for v in c.h if v + reach < w_s * c.interval / 2)
         if h_s:
             pools.append((w_s, h_s))
-    picks, window = [], None
+    picks, window, searched = [], None, []
     for wp, hp in pools:
         _, _, res, win = _identify_window(state, j - 1, wp, delays, hp)
         window = window or win
+        searched.append(res)
         picks += [(res, i, wp, hp) for i in _ok_columns(c, res)[:TOP_RANK]]
     if not picks:
-        return None, None, None, window, "forecast"
+        return None, None, None, window, _no_candidate(c, searched)
     fill = current
     if fill is None:  # first model: no current one; the stack's row 0 repeats the first pick
         one = _stack(c, [picks[0][:2]], _candidate(c, _empty_model(c)))
@@ -762,7 +783,10 @@ def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
     E = np.where((np.asarray(status) == 0) & np.isfinite(E), E, np.inf)
     best = int(np.argmin(E[1 : 1 + len(picks)]))
     if not math.isfinite(E[1 + best]):
-        return None, None, None, window, "forecast"
+        failed = sorted({describe(int(v)) for v in np.asarray(status)[1:1 + len(picks)]})
+        return None, None, None, window, (
+            f"rejected: the forecast of interval {j} by each of the {len(picks)} candidates "
+            f"with status ok failed (status {', '.join(failed)})")
     res, i, wp, hp = picks[best]
     winner = _row(res, i)
     # the winner's settings fitted again on the newest window (it includes interval j): its
@@ -958,8 +982,7 @@ def _close_interval(state: OnlineState, j: int):
             E_cur_ok = E_cur is not None and math.isfinite(E_cur)
             event.update(E_current=E_cur if E_cur_ok else None, E_reident=E_best, E_on=on)
             if best is None:
-                event["action"] = "rejected: no candidate had status ok" + (
-                    " and poles of damping ratio >= 0.5" if "damping" in c.improvements else "")
+                event["action"] = on  # the rejection, with the reason (`_improved_choice`)
             elif not has:
                 new = _as_model(c, best, 1, 1, op_time)
                 event.update(action="first model")
