@@ -146,6 +146,9 @@ def test_cli_search_estimate(noisy, tmp_path, capsys):
     assert main(args + ["--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     est = out["estimated"]
+    # JSON times the whole estimate too: its compile_s/run_s were the last search's alone
+    assert "compile_s" not in out and "run_s" not in out
+    assert out["estimate_s"] >= out["search_compile_s"] + out["search_run_s"] > 0
     # the table shows what it is ranked by, the mean hold-out E and fit % (it showed the
     # refit's, on a block it was fitted on, so rank 1 could show a larger E than rank 9):
     # a hold-out search's E_holdout is its ranking key, the mean of the folds' hold-out E,
