@@ -120,34 +120,41 @@ class Residuals(eqx.Module):
     auto_bound: float  # z / sqrt(N)
     whiteness_stat: float  # Box-Pierce Q
     whiteness_critical: float  # chi2_0.99(L)
-    white: bool
+    white: bool | None  # None: undefined (constant or rounding-level residuals: `EXACT_FIT`)
     cross_lags: np.ndarray  # (2L+1,) -L..L
     cross: np.ndarray  # (K, 2L+1) r_ue(tau) per input
     cross_bound: np.ndarray  # (K,) z sqrt(P1 / N)
     independence_stat: np.ndarray  # (K,)
     independence_critical: np.ndarray  # (K,)
-    independent: tuple  # per input: True / False (None when the input is constant)
+    independent: tuple  # per input: True / False (None when the input or e is constant)
     fit: float
     output_name: str = eqx.field(static=True)
     input_names: tuple = eqx.field(static=True)
 
     @property
     def ok(self) -> bool:
-        """Both tests pass (whiteness and independence from every non-constant input)."""
-        return bool(self.white) and all(v is not False for v in self.independent)
+        """No test fails: whiteness and independence from every input pass, or are undefined
+        (a constant input; residuals constant or at rounding level, `EXACT_FIT`)."""
+        return self.white is not False and all(v is not False for v in self.independent)
 
     def summary(self) -> str:
         N, L = self.e.size, self.lags.size - 1
+        flat = self.white is None  # constant residuals: no correlation is defined
+        white = ("undefined (the residuals are constant or at rounding level: the model "
+                 "reproduces the data)" if flat
+                 else "PASS" if self.white else "FAIL")
         out = [f"residual analysis of {self.output_name}: N = {N}, lags 0..{L}, 99 % level, "
                f"fit {self.fit:.2f} %, mean(e) = {np.mean(self.e):.4g}, "
                f"std(e) = {np.std(self.e):.4g}",
                f"whiteness: Q = {self.whiteness_stat:.2f} vs chi2_0.99({L}) = "
-               f"{self.whiteness_critical:.2f}: {'PASS' if self.white else 'FAIL'} "
+               f"{self.whiteness_critical:.2f}: {white} "
                f"({int(np.sum(np.abs(self.auto[1:]) > self.auto_bound))} of {L} lags outside "
                f"+-{self.auto_bound:.3g})"]
         for k, name in enumerate(self.input_names):
             ok = self.independent[k]
-            verdict = "undefined (constant input)" if ok is None else ("PASS" if ok else "FAIL")
+            verdict = ("undefined (residuals at rounding level)" if ok is None and flat else
+                       "undefined (constant input)" if ok is None else
+                       "PASS" if ok else "FAIL")
             outside = int(np.sum(np.abs(self.cross[k]) > self.cross_bound[k]))
             out.append(f"independence from {name}: Q = {self.independence_stat[k]:.2f} vs "
                        f"{self.independence_critical[k]:.2f}: {verdict} ({outside} of "
@@ -159,7 +166,8 @@ class Residuals(eqx.Module):
         return {
             "N": int(self.e.size), "lags": int(self.lags.size - 1), "level": LEVEL,
             "fit": self.fit, "mean_e": float(np.mean(self.e)), "std_e": float(np.std(self.e)),
-            "whiteness": {"pass": bool(self.white), "Q": float(self.whiteness_stat),
+            "whiteness": {"pass": None if self.white is None else bool(self.white),
+                          "Q": float(self.whiteness_stat),
                           "critical": float(self.whiteness_critical),
                           "bound": float(self.auto_bound)},
             "independence": {name: {"pass": self.independent[k],
@@ -184,11 +192,27 @@ def _xcorr(a, b, lags):
     return np.array([full[tau % size] for tau in lags]) / N  # circular index: no wrap (size >= 2N)
 
 
-def residual_tests(e, u, lags: int):
-    """The statistics of `Residuals` from residuals e (N,) and inputs u (N, K) (NumPy)."""
+# residual RMS at most this fraction of the output's standard deviation: the model reproduces
+# the data to rounding (noise-free data; float64 simulations agree to about 1e-13 there), so
+# the correlation tests would judge rounding errors, and errors below it are ties (`estimate`)
+EXACT_FIT = 1e-9
+
+
+def exact_floor(y, dt: float = 1.0) -> float:
+    """E (eq. 17, dt sum e^2) of residuals at `EXACT_FIT` of the spread of `y`."""
+    y = np.asarray(y)
+    return float(EXACT_FIT**2 * dt * np.sum((y - np.mean(y)) ** 2))
+
+
+def residual_tests(e, u, lags: int, y=None):
+    """The statistics of `Residuals` from residuals e (N,) and inputs u (N, K) (NumPy); both
+    tests are undefined (None) for constant residuals, or residuals within `exact_floor` of
+    the output `y` (given): a fit to rounding."""
     N, K = e.size, u.shape[1]
     eb = e - e.mean()
     Re0 = float(eb @ eb) / N
+    if y is not None and float(e @ e) <= exact_floor(y):
+        Re0 = 0.0  # rounding errors: no test
     tau = np.arange(lags + 1)
     auto = _xcorr(eb, eb, tau) / Re0 if Re0 > 0 else np.full(lags + 1, np.nan)
     Q = float(N * np.sum(auto[1:] ** 2))
@@ -220,7 +244,8 @@ def residual_tests(e, u, lags: int):
         crit[k] = _chi2_99(int(keep.sum()))
         indep.append(bool(stat[k] <= crit[k]))
     return dict(auto=auto, auto_bound=Z99 / math.sqrt(N), whiteness_stat=Q,
-                whiteness_critical=_chi2_99(lags), white=bool(Q <= _chi2_99(lags)),
+                whiteness_critical=_chi2_99(lags),
+                white=bool(Q <= _chi2_99(lags)) if Re0 > 0 else None,
                 cross_lags=xl, cross=cross, cross_bound=bound, independence_stat=stat,
                 independence_critical=crit, independent=tuple(indep), lags=tau)
 
@@ -249,7 +274,7 @@ def residuals(model: Model, signals: Signals, window=None, *, observer_window=No
     t, y, y_sim, k0 = _simulated(model, signals, window, observer_window, "residuals")
     u = np.asarray(signals.u)[k0 : k0 + N]
     e = y - y_sim
-    stats = residual_tests(e, u, int(lags))
+    stats = residual_tests(e, u, int(lags), y=y)
     fit = float(fit_percent(y, y_sim)) if np.ptp(y) > 0 else math.nan
     return Residuals(t=t, e=e, fit=fit, output_name=signals.output_name,
                      input_names=tuple(signals.input_names), **stats)
@@ -285,14 +310,39 @@ def model_and_covariance(obj, covariance, fn: str):
                          f"parameters {list(free)}")
     if covariance is None:
         return model, None
-    cov = _b.array(fn, "covariance", covariance, ndim=2)
+    cov = _b.array(fn, "covariance", covariance, ndim=2,
+                   fix="an undetermined parameter (infinite variance) has no band: give a finite "
+                       "covariance, or leave it out")
     p = len(free)
     if cov.shape != (p, p):
         raise ValueError(f"{fn}(): covariance must be ({p}, {p}), ordered as the free parameters "
                          f"{list(free)} (got shape {cov.shape})")
     if np.any(np.diag(cov) < 0) or not np.allclose(cov, cov.T, rtol=1e-8, atol=0.0):
         raise ValueError(f"{fn}(): covariance must be symmetric with a non-negative diagonal")
-    return model, np.asarray(cov, dtype=np.float64)
+    cov = np.asarray(cov, dtype=np.float64)
+    worst = _least_correlation_eigenvalue(cov)
+    if worst < -PSD_TOL:  # clamped variances gave bands of zero width
+        raise ValueError(f"{fn}(): covariance is not positive semidefinite (its correlation "
+                         f"matrix has the eigenvalue {worst:.3g}): no distribution has it; "
+                         "check how it was computed (a correlation above 1 in magnitude?)")
+    return model, cov
+
+
+PSD_TOL = 1e-10  # a correlation matrix's eigenvalue below -this: not a covariance (rounding
+# leaves about p eps)
+
+
+def _least_correlation_eigenvalue(cov) -> float:
+    """Least eigenvalue of `cov`'s correlation matrix (scale-free), over the parameters of
+    positive variance; -inf when a parameter of zero variance covaries with another."""
+    d = np.diag(cov)
+    pos = d > 0
+    if np.any(cov[~pos] != 0):
+        return -np.inf
+    if not pos.any():
+        return 0.0
+    s = np.sqrt(d[pos])
+    return float(np.linalg.eigvalsh(cov[np.ix_(pos, pos)] / s[:, None] / s[None, :]).min())
 
 
 def usable_covariance(model: Model, covariance):
@@ -498,11 +548,8 @@ def frequency_response(model, w=None, *, covariance=None, n_points: int = 400):
              "steady-state response (the model has none)")
     if w is None:
         n_points = _b.integer("frequency_response", "n_points", n_points, lo=2, hi=100_000)
-        roots = [_poles(model)] + [np.roots(np.asarray(bk)[::-1]) for bk in model.b]
-        mags = np.abs(np.concatenate(roots))
-        mags = mags[(mags > 0) & np.isfinite(mags)]
-        lo, hi = (mags.min(), mags.max()) if mags.size else (1.0, 1.0)
-        w = np.logspace(np.log10(0.01 * lo), np.log10(100 * hi), n_points)
+        w = _default_grid(np.concatenate([_poles(model)] + [np.roots(np.asarray(bk)[::-1])
+                                                            for bk in model.b]), n_points)
     w = _b.array("frequency_response", "w", w, ndim=1)
     if w.size < 1 or np.any(w <= 0):
         raise ValueError("frequency_response(): w must hold frequencies > 0 (rad per time unit)")
@@ -519,7 +566,7 @@ def frequency_response(model, w=None, *, covariance=None, n_points: int = 400):
                              f"{model.input_names[k]!r} is zero or infinite at some w (its "
                              "magnitude in dB is not finite); check b_k and the poles on the "
                              "imaginary axis, or give other frequencies w")
-        phase = np.unwrap(ang) - w * delays[k]
+        phase = _continuous_phase(ang, w, model.a, model.b[k]) - w * delays[k]
         mags.append(mag)
         phases.append(np.degrees(phase))
         Hs.append(10 ** (mag / 20) * np.exp(1j * phase))
@@ -538,6 +585,40 @@ def frequency_response(model, w=None, *, covariance=None, n_points: int = 400):
         (np.stack(mstd) if K else empty) if cov is not None else None,
         (np.stack(pstd) if K else empty) if cov is not None else None,
         model.output_name, tuple(model.input_names))
+
+
+def _default_grid(roots, n_points: int) -> np.ndarray:
+    """`n_points` log-spaced from 0.01x the smallest to 100x the largest nonzero root
+    magnitude, plus each damped root's natural frequency wn and half-power points wn (1 +- zeta)
+    (a lightly damped peak fell between grid points: 32.8 dB shown of 54.0 dB at zeta =
+    0.001), and no point within 1e-9 of an undamped root's wn (where the response is 0 or inf)."""
+    roots = roots[np.isfinite(roots) & (np.abs(roots) > 0)]
+    mags = np.abs(roots)
+    lo, hi = (mags.min(), mags.max()) if mags.size else (1.0, 1.0)
+    w = np.logspace(np.log10(0.01 * lo), np.log10(100 * hi), n_points)
+    zeta = -roots.real / mags
+    damped = np.abs(zeta) > 1e-12
+    extra = [mags[damped], (mags * (1 - np.abs(zeta)))[damped], (mags * (1 + np.abs(zeta)))[damped]]
+    w = np.unique(np.concatenate([w] + extra))
+    w = w[w > 0]
+    for wn in mags[~damped]:
+        w = w[np.abs(w - wn) > 1e-9 * wn]
+    return w
+
+
+def _continuous_phase(ang, w, a, b) -> np.ndarray:
+    """The phase of B(jw)/A(jw) at `w`, continuous in w: `ang` (its principal value) moved by
+    2 pi to the branch nearest the sum of its factors' angles, angle(jw - z) - angle(jw - p),
+    each continuous for w > 0. `np.unwrap` of samples chose the wrong branch wherever the
+    phase moved by more than 180 degrees between grid points (1/(s + 1)^4 at w = 0.1, 10:
+    +22.8 degrees for -337.2). The first point keeps its principal value."""
+    b = np.trim_zeros(np.asarray(b, dtype=np.float64), "b")
+    jw = 1j * np.asarray(w)[:, None]
+    guide = (np.angle(b[-1]) + np.sum(np.angle(jw - np.roots(b[::-1])[None, :]), axis=1)
+             - np.sum(np.angle(jw - np.roots(np.asarray(a, dtype=np.float64)[::-1])[None, :]),
+                      axis=1))
+    guide = guide + 2 * np.pi * np.round((ang[0] - guide[0]) / (2 * np.pi))
+    return ang + 2 * np.pi * np.round((guide - ang) / (2 * np.pi))
 
 
 def saved_covariance(path, model: Model):

@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 from . import _boundary as _b
+from ._analysis import exact_floor
 from ._batch import as_records, map_pairs, overlapped
 from ._boundary import check_search
 from ._model import Model, is_stable
@@ -266,16 +267,6 @@ RESIDUAL_LAGS = 25  # lags of the residual tests (`residuals`), at most a quarte
 
 
 START_RATIO = 1.2  # SRIVC's from-rest residual variance over the observer-started one
-# residual RMS at most this fraction of the output's standard deviation: the model reproduces
-# the data to rounding (noise-free data; float64 simulations agree to about 1e-13 there), so
-# errors below it are ties and the residual tests are rounding noise
-EXACT_FIT = 1e-9
-
-
-def exact_floor(y, dt: float = 1.0) -> float:
-    """E (eq. 17, dt sum e^2) of residuals at `EXACT_FIT` of the spread of `y`."""
-    y = np.asarray(y)
-    return float(EXACT_FIT**2 * dt * np.sum((y - np.mean(y)) ** 2))
 
 
 def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = False,
@@ -319,12 +310,11 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
         rec = records[r]
         u = np.asarray(rec.u).reshape(T, -1)
         e = np.asarray(rec.y) - np.asarray(o.y_sim)[:T]
-        stats = residual_tests(e, u, lags)
+        stats = residual_tests(e, u, lags, y=rec.y)
         bad = [name for name, ok in zip(rec.input_names, stats["independent"]) if ok is False]
         notes = []
-        exact = np.sum(e * e) <= exact_floor(rec.y)  # the tests would judge rounding errors
+        exact = stats["white"] is None  # rounding-level residuals: no test (`EXACT_FIT`)
         if exact:
-            bad = []
             notes.append(f"the model reproduces the record to rounding (residual RMS "
                          f"{np.sqrt(np.mean(e * e)):.2g}, output std {np.std(rec.y):.3g}): "
                          "noise-free data, so the residual tests are skipped and the standard "

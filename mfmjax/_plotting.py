@@ -124,8 +124,9 @@ def plot_residuals(res, path) -> None:
     ax = axes[0]
     ax.stem(res.lags, res.auto, basefmt=" ")
     ax.axhspan(-res.auto_bound, res.auto_bound, color="#d6e4f5", lw=0, zorder=0)
-    ax.set_title(f"auto-correlation of the residuals of {res.output_name}: "
-                 f"{'white' if res.white else 'NOT white'} (99 %)", fontsize=9)
+    verdict = "undefined" if res.white is None else "white" if res.white else "NOT white"
+    ax.set_title(f"auto-correlation of the residuals of {res.output_name}: {verdict} (99 %)",
+                 fontsize=9)
     ax.set_xlabel("lag")
     for k, name in enumerate(res.input_names):
         ax = axes[1 + k]

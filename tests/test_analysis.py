@@ -281,6 +281,76 @@ def test_bands_from_a_fit_and_covariance_checks():
         mfmjax.step_response("model.json")
 
 
+def test_covariance_that_is_not_positive_semidefinite_or_not_finite_is_refused():
+    """A symmetric "covariance" with a correlation of 10 (eigenvalue -1.9e-3 x) gave bands of
+    zero width (clamped variances) without a word; an inf entry was refused with the data's
+    advice ("remove or interpolate non-finite samples")."""
+    model = _model()
+    bad = COV.copy()
+    bad[0, 1] = bad[1, 0] = 10 * np.sqrt(COV[0, 0] * COV[1, 1])
+    with pytest.raises(ValueError, match=r"frequency_response\(\): covariance is not positive "
+                                         r"semidefinite \(its correlation matrix has the "
+                                         r"eigenvalue -9"):
+        mfmjax.frequency_response(model, np.array([1.0]), covariance=bad)
+    with pytest.raises(ValueError, match=r"step_response\(\): covariance has a NaN or inf .*an "
+                                         r"undetermined parameter \(infinite variance\) has no "
+                                         "band"):
+        mfmjax.step_response(model, 5.0, covariance=np.diag([np.inf, 1.0, 1.0, 1.0]))
+    # a parameter of zero variance is fine if it covaries with nothing
+    fixed = COV.copy()
+    fixed[0, :] = fixed[:, 0] = 0.0
+    assert mfmjax.step_response(model, 5.0, covariance=fixed, n_points=20).std is not None
+
+
+def test_phase_is_continuous_and_the_default_grid_finds_the_resonance():
+    """np.unwrap of sampled angles took the wrong branch where the phase moved by more than
+    180 degrees between grid points: 1/(s + 1)^4 at w = 0.1, 10 gave +22.8 degrees for
+    -337.2, and two pole pairs of damping 5e-4 ended at +0.001 degrees for -360 on the default
+    grid, whose log-spaced points also missed a resonance (32.8 dB shown of 54.0 dB at damping
+    ratio 0.001). The phase is checked against the sum of the factors' angles; the peak
+    against 1/(2 zeta sqrt(1 - zeta^2)) (the grid holds wn, where |G| is 1/(2 zeta): 2.2e-6 dB
+    below the peak)."""
+    four = Model.from_coefficients(np.poly([-1.0] * 4)[::-1], [[1.0]])
+    w = np.array([0.1, 10.0])
+    want = -4 * np.degrees(np.arctan(w))
+    np.testing.assert_allclose(mfmjax.frequency_response(four, w).phase_deg[0], want, rtol=1e-12)
+    q = [1.0, 0.001, 1.0]
+    pairs = mfmjax.frequency_response(Model.from_coefficients(np.convolve(q, q), [[1.0]]))
+    assert pairs.phase_deg[0][-1] == pytest.approx(-360.0, abs=0.01)
+    assert np.all(np.abs(np.diff(pairs.phase_deg[0])) < 180.0)
+    zeta = 0.001
+    peak = mfmjax.frequency_response(Model.from_coefficients([1.0, 2 * zeta, 1.0], [[1.0]]))
+    true = -20 * np.log10(2 * zeta * np.sqrt(1 - zeta**2))  # 53.98 dB
+    assert true - 1e-3 < peak.mag_db.max() <= true + 1e-9
+    # an undamped zero pair: no default grid point on it (the response is 0 there), whatever
+    # n_points (401 points put one on w = 1 and raised "zero or infinite")
+    notch = Model.from_coefficients([1.0, 2.0, 1.0], [[1.0, 0.0, 1.0]])
+    for n_points in (400, 401):
+        assert np.all(np.isfinite(mfmjax.frequency_response(notch, n_points=n_points).mag_db))
+
+
+def test_residuals_of_a_perfect_fit_are_undefined_not_failed():
+    """The true model on noise-free data: residuals at rounding level (1.7e-17 here) were
+    judged as data (and exactly zero ones printed "Q = nan ... FAIL" and "undefined (constant
+    input)" for an input that moves; report.json said pass: false). Within `EXACT_FIT` (1e-9
+    of the output's spread) both tests are undefined."""
+    sig = record()
+    true = _model()
+    exact = Signals(np.asarray(mfmjax.simulate(true, sig.u, dt=DT)), sig.u, dt=DT,
+                    intersample=sig.intersample, delays=sig.delays)
+    res = mfmjax.residuals(true, exact, window=(TAU, (T - 1) * DT))  # u known over the window
+    assert 0 < np.max(np.abs(res.e)) < 1e-12 * np.std(np.asarray(exact.y))
+    assert res.white is None and res.independent == (None,) and res.ok
+    text = res.summary()
+    assert "undefined (the residuals are constant or at rounding level" in text
+    assert "undefined (residuals at rounding level)" in text and "FAIL" not in text
+    # exactly zero residuals (the window from the record's start, the input held before it)
+    with pytest.warns(UserWarning, match="is delayed by 0.2"):
+        zero = mfmjax.residuals(true, exact)
+    assert zero.white is None and zero.ok and "FAIL" not in zero.summary()
+    assert res.to_dict()["whiteness"]["pass"] is None
+
+
 # -- export -------------------------------------------------------------------------------------
 
 
