@@ -17,9 +17,11 @@ from .. import _batch
 from .._gram import input_varies, steady_input_columns
 from .._identify import FEEDTHROUGH_STEPS
 from .._jit import RUN_ONCE_OPTIONS, jit
+from .._linalg import hurwitz
 from .._quadrature import edge_padded
 from .._signals import Signals
 from .._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
+from .._status import Status
 from ._grid import VALIDATION_BATCH, ChunkStatic, Plan
 from ._moments import moment_gram
 from ._result import collect
@@ -163,9 +165,14 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
         solve_all, lead = jax.vmap(solve_all), 2
     out = jax.tree.map(lambda x: x.reshape((G, C) + x.shape[lead:]), solve_all(pairs))
     shape = out["status"].shape
-    if not static.simulate:  # equation error only (score J)
+    if not static.simulate:  # equation error only (score J): the Routh test all the same
+        # (the status said ok for unstable A(s)), not where a_n vanished or values are not
+        # finite (those bits say the coefficients are no model), as `identify`
         nan = jnp.full(shape, jnp.nan)
-        return dict(out, E=nan, fit=nan, aic=nan, bic=nan, status=out["status"].astype(jnp.int32))
+        stable = jax.vmap(hurwitz)(out["a"].reshape(G * C, n_max + 1)).reshape(shape)
+        void = (out["status"] & int(Status.NONFINITE | Status.A_N_ZERO)) != 0
+        status = out["status"] | jnp.where(void | stable, 0, int(Status.UNSTABLE))
+        return dict(out, E=nan, fit=nan, aic=nan, bic=nan, status=status.astype(jnp.int32))
     flat = {  # the padded models of the (G, C) solves as one axis (`validate_candidate`'s c)
         "a": out["a"].reshape(G * C, n_max + 1),
         "b": out["b"].reshape(G * C, K, n_max + 1),

@@ -15,7 +15,8 @@ from .._signals import dependent_candidates
 from .._status import Status, describe
 from .._structure import Structure
 
-E_TIE_RTOL = 1e-12  # E values closer than this fraction of int y^2 rank by parameter count
+E_TIE_RTOL = 1e-12  # E values closer than this fraction of int (y - mean y)^2 rank by
+# parameter count (of int y^2 before: an output at a level of 1e5 tied every candidate)
 
 
 class SearchResult(eqx.Module):
@@ -186,10 +187,10 @@ def collect(cols, combos, structs, signals, static, score, t_compile, t_run, whe
            "bic": cols["bic"]}[score]
     key = np.where(np.isfinite(key), key, np.inf)
     tie = None  # candidates within `tie` of the best usable score are tied: fewer parameters win
-    if score == "E":  # E below rounding noise (1e-12 of the output energy)
+    if score == "E":  # E below rounding noise (1e-12 of the output's variation energy)
         v_start = int(where["v_start"])
         yv = np.asarray(signals.y)[v_start : v_start + int(where["v_valid"])]
-        tie = E_TIE_RTOL * float(np.sum(yv**2)) * signals.dt
+        tie = E_TIE_RTOL * float(np.sum((yv - np.mean(yv)) ** 2)) * signals.dt
     if score == "J":  # J below sqrt(p eps) is the float64 noise of theta' G theta
         tie = math.sqrt(cols["theta"].shape[1] * np.finfo(np.float64).eps)
     n_par = np.asarray([s[0] + sum(mk + 1 for mk in s[1]) for s in structs])[st]
