@@ -58,7 +58,7 @@ def number(fn: str, name: str, value, *, lo=None, hi=None, lo_open: bool = False
         if value.size != 1 or value.dtype == bool or not np.issubdtype(value.dtype, np.number):
             raise TypeError(f"{fn}(): {name} must be one number, got an array of shape "
                             f"{value.shape} ({value.dtype})")
-        value = value.reshape(())[()]
+        value = np.asarray(value).reshape(())[()]  # a NumPy scalar (a JAX one is no Real)
     if not isinstance(value, numbers.Real):
         raise TypeError(f"{fn}(): {name} must be a real number, got {type(value).__name__} "
                         f"{_show(value)}")
@@ -382,8 +382,9 @@ def check_scores(signals, structure, *, h, N, M, delays, eta, validate, observer
     if not isinstance(structure, Structure):
         raise TypeError(f"{fn}(): structure must be a Structure, got {type(structure).__name__}")
     for name, val in (("N", N), ("M", M)):
-        if not is_traced(val):
-            number(fn, name, val, lo=1)
+        if not is_traced(val):  # as identify: phi^(i) must vanish at both ends for i < n
+            number(fn, name, val, lo=structure.n,
+                   fix=f"phi^(i) must vanish at both ends for i < n = {structure.n}")
     if not is_traced(h):
         number(fn, "h", h, lo=0, lo_open=True)
         min_support(fn, h, signals.host_dt)

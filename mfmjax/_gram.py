@@ -231,6 +231,22 @@ _modulated_program = jit(modulated_columns)
 _gram_program = jit(gram_matrix)
 
 
+def settings_valid(signals: Signals, n: int, mf: ModulatingFunction, first, end, n_params: int):
+    """Inside a program: the traced settings are in the range the eager checks enforce (N, M
+    >= n and N + M <= `MAX_DEGREE`, h at least 2 samples, delays >= 0, all finite, and at
+    least max(`MIN_VALID`, 2 p) valid samples after the kernels' support `first`). Concrete
+    settings outside it are refused at the boundary; traced ones gave a wrong model with
+    status ok (N = 2 < n = 3: a = [12.4, 12.5, 4.8, 1])."""
+    from ._modulating import MAX_DEGREE
+
+    N, M, h = (jnp.asarray(v, jnp.float64) for v in (mf.N, mf.M, mf.h))
+    d = jnp.asarray(signals.delays, jnp.float64)
+    T = signals.n_samples if end is None else end
+    return (jnp.isfinite(N) & jnp.isfinite(M) & jnp.isfinite(h) & jnp.all(jnp.isfinite(d))
+            & (N >= n) & (M >= n) & (N + M <= MAX_DEGREE) & (h >= 2 * signals.dt * (1 - 1e-12))
+            & jnp.all(d >= 0) & (T - first >= max(MIN_VALID, 2 * n_params)))
+
+
 def check_record_length(signals: Signals, mf: ModulatingFunction, n_params: int):
     """Boundary check: the record must hold h (+ delays) plus enough valid samples."""
     if isinstance(mf.h, jax.core.Tracer) or isinstance(signals.delays, jax.core.Tracer):

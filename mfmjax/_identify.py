@@ -15,6 +15,7 @@ from ._gram import (
     feedthrough_corrections,
     gram_matrix,
     modulated_columns,
+    settings_valid,
     steady_input_columns,
 )
 from ._jit import jit
@@ -127,6 +128,10 @@ def identify_core(signals, structure, mf, eta, length: int, end=None,
     status, div, quad, J_rel = finish_solve(theta, G, reduced, n, finite,
                                             jnp.all(ms.excited) & jnp.all(alive))
     status = status | jnp.where(ms.fits, 0, Status.OUT_OF_BOUNDS)
+    # a traced setting outside its valid range: no model (NaN), flagged as out of bounds
+    valid = settings_valid(signals, n, mf, ms.first, end, theta.shape[0])
+    status = status | jnp.where(valid, 0, Status.OUT_OF_BOUNDS)
+    theta, quad, J_rel = (jnp.where(valid, x, jnp.nan) for x in (theta, quad, J_rel))
     bs, pos = [], n + 1
     for k in range(K):
         bs.append(theta[pos : pos + structure.m[k] + 1] / div)
@@ -136,7 +141,7 @@ def identify_core(signals, structure, mf, eta, length: int, end=None,
     a = theta[: n + 1] / div
     status = status.astype(jnp.int32)
     if flag_unstable:
-        void = (status & int(Status.NONFINITE | Status.A_N_ZERO)) != 0
+        void = ((status & int(Status.NONFINITE | Status.A_N_ZERO)) != 0) | ~valid
         status = status | jnp.where(void | hurwitz(a), 0, int(Status.UNSTABLE)).astype(jnp.int32)
     return a, tuple(bs), offset, theta, J, J_rel, cond, status
 

@@ -76,8 +76,9 @@ class Model(eqx.Module):
 
         Coefficients are normalised to a_n = 1. Raises if a_n = 0 or the orders are invalid.
         """
-        from ._boundary import eager_only, number
+        from ._boundary import eager_only, number, require_x64
 
+        require_x64("Model.from_coefficients")  # device_put narrowed to float32 without it
         eager_only("Model.from_coefficients", a, b, offset, delays)
         if isinstance(b, (str, bytes)) or not hasattr(b, "__iter__"):
             raise TypeError(f"Model.from_coefficients(): b must be a sequence of per-input "

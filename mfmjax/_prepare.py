@@ -179,6 +179,7 @@ class Trend(eqx.Module):
 
 
 def _check_concrete(fn: str, signals) -> None:
+    _b.require_x64(fn)  # the detrended record went through device_put: float32 without it
     if not isinstance(signals, Signals):
         raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}")
     _b.eager_only(fn, signals, fix="detrend the data before the transformation")

@@ -53,11 +53,12 @@ def dependent_inputs(signals, delays=None) -> tuple[str, ...]:
     `NO_EXCITATION`; dependent when the smallest singular value of the unit-norm columns is
     below `DEPENDENT_RTOL` of the largest (from their K x K Gram, whose eigenvalues resolve
     ratios down to 1e-12, the square of that). `delays` (K,) replaces the signals' own (a
-    search candidate's). Empty for traced data."""
+    search candidate's). Empty for traced data or traced delays."""
+    delays = signals.delays if delays is None else delays
     gram = _input_gram(signals)
-    if gram is None:
+    if gram is None or not _concrete(delays):
         return ()
-    return _dependent(signals, gram, signals.delays if delays is None else delays)
+    return _dependent(signals, gram, delays)
 
 
 def dependent_candidates(signals, delays) -> tuple[np.ndarray, tuple[str, ...]]:
@@ -452,6 +453,7 @@ class Signals(eqx.Module):
     def window(self, t0: float, t1: float) -> Signals:
         """The samples with t0 <= t <= t1 (rounded to the grid) as their own record; time,
         rules, delays, offset and names are kept."""
+        _b.require_x64("Signals.window")  # device_put narrowed to float32 without it
         _b.window("Signals.window", "window", (t0, t1))
         T, dt = self.n_samples, self.host_dt  # a number also for stacked records under vmap
         a, b = round((float(t0) - self.t0) / dt), round((float(t1) - self.t0) / dt)

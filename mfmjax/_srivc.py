@@ -294,7 +294,10 @@ def _run(c, y, u, valid, max_iter, tol, dt, modes, has_offset):
     theta, E, sigma2, cov, it, status = _core(c, y, u, valid, max_iter, tol, modes=modes,
                                               has_offset=has_offset, dt=dt)
     a = padded.split(theta, c, has_offset)[0]
-    model_status = jnp.where(hurwitz(a), 0, int(Status.UNSTABLE)).astype(jnp.int32)
+    model_status = jnp.where(hurwitz(a), 0, int(Status.UNSTABLE))
+    # NaN or inf data (possible under jit/vmap): the model says so too (it read ok)
+    finite = jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(u))
+    model_status = (model_status | jnp.where(finite, 0, int(Status.NONFINITE))).astype(jnp.int32)
     return dict(theta=theta, model_status=model_status, std=jnp.sqrt(jnp.diagonal(cov)),
                 cov=cov, sigma2=sigma2, E=E, it=it, status=status)
 

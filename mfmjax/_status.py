@@ -19,7 +19,8 @@ class Status(enum.IntFlag):
     UNSTABLE = 16  # model has a pole with positive real part
     UNOBSERVABLE = 32  # observer Gramian numerically singular (window too short / pair unobservable)
     OVERFLOW = 64  # simulation left the float64 range (unstable model on a long window)
-    OUT_OF_BOUNDS = 128  # traced h + delay exceed the static bound (h_max, delay_max) compiled for
+    OUT_OF_BOUNDS = 128  # traced h + delay exceed the static bound (h_max, delay_max) compiled
+    # for, or a traced setting is outside its valid range (N, M < n, h < 2 dt, delay < 0, ...)
 
 
 def describe(status: int) -> str:

@@ -6,11 +6,12 @@ import math
 import warnings
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import mfmjax
-from mfmjax import ModulatingFunction, OnlineConfig, Signals, Structure
+from mfmjax import Model, ModulatingFunction, OnlineConfig, Signals, Structure
 from mfmjax._online import OUTLIER_Z, spike_scores
 
 DT = 0.05
@@ -214,6 +215,11 @@ def test_fit_percent_of_constant_output_is_undefined():
                                          "undefined"):
         mfmjax.fit_percent(np.ones(10), np.zeros(10))
     assert mfmjax.fit_percent(np.arange(4.0), np.arange(4.0)) == 100.0
+    # a concrete 0-d JAX array is a number ("must be a real number, got ArrayImpl" before)
+    one = mfmjax.Model.from_coefficients([1.0, 1.0], [[1.0]])
+    np.testing.assert_array_equal(np.asarray(mfmjax.simulate(one, np.ones((5, 1)),
+                                                             dt=jnp.asarray(0.05))),
+                                  np.asarray(mfmjax.simulate(one, np.ones((5, 1)), dt=0.05)))
     # a diverged simulation: not "remove or interpolate non-finite samples" (the data's advice)
     with pytest.raises(ValueError, match=r"fit_percent\(\): y_sim has a NaN or inf at sample 2: "
                                          "the simulation did not stay finite"):
@@ -411,6 +417,10 @@ def test_low_level_entries_refuse_float32_mode(data):
     }
     config = OnlineConfig(dt=1.0, n_inputs=1)
     calls["online.init"] = lambda: mfmjax.online.init(config)
+    # these three returned float32 arrays (device_put of float64 NumPy narrows them)
+    calls["Model.from_coefficients"] = lambda: Model.from_coefficients([1.0, 2.0], [[1.0]])
+    calls["Signals.window"] = lambda: sig.window(0.0, 1.0)
+    calls["detrend"] = lambda: mfmjax.detrend(sig)
     jax.config.update("jax_enable_x64", False)
     try:
         for name, call in calls.items():

@@ -6,6 +6,7 @@ for the compiled programs, never a new program. Compilations are counted from JA
 
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -443,6 +444,39 @@ def test_traced_h_beyond_its_bound_is_flagged_not_truncated(record):
 
     assert int(status(2.2)) == 0  # above h_max but inside the compiled kernel: exact
     assert int(status(3.0)) & Status.OUT_OF_BOUNDS
+
+
+def test_traced_settings_outside_their_range_are_flagged_not_fitted(record):
+    """Concrete N < n, h < 2 dt and negative delays are refused at the boundary; traced ones
+    gave a wrong model with status ok (N = 2 < n = 3: a = [12.4, 12.5, 4.8, 1]; h = dt: a =
+    [1.5, 7.8, 5.8, 1]; a delay of -0.3). They now give NaN coefficients and out_of_bounds,
+    also through `scores`, and the valid values in the same program are unchanged. Traced
+    delays alone no longer crash (the dependent-inputs check read them on the host)."""
+    f = jax.jit(lambda N, M, h: mfmjax.identify(record, ST, ModulatingFunction(N, M, h,
+                                                                              h_max=3.0)))
+    good = f(4.0, 5.0, 2.6)
+    assert int(good.status) == 0 and np.all(np.isfinite(np.asarray(good.a)))
+    eager = mfmjax.identify(record, ST, ModulatingFunction(4, 5, 2.6))
+    np.testing.assert_allclose(np.asarray(good.a), np.asarray(eager.a), rtol=1e-12)
+    for N, M, h in ((2.0, 5.0, 2.6), (4.0, 2.5, 2.6), (4.0, 5.0, DT), (15.0, 6.0, 2.6)):
+        bad = f(N, M, h)
+        assert int(bad.status) == Status.OUT_OF_BOUNDS, (N, M, h)
+        assert np.all(np.isnan(np.asarray(bad.a)[:-1])) and np.isnan(float(bad.J_rel))
+
+    def with_delays(d):
+        sig = eqx.tree_at(lambda s: s.delays, record, d)
+        return mfmjax.identify(sig, ST, ModulatingFunction(4, 5, 2.6), delay_max=0.5)
+
+    run = jax.jit(with_delays)
+    ok = run(jnp.array([0.2, 0.0]))
+    assert int(ok.status) == 0
+    for d in ([-0.3, 0.0], [np.nan, 0.0]):
+        assert int(run(jnp.array(d)).status) & Status.OUT_OF_BOUNDS, d
+    E = jax.jit(lambda N: mfmjax.scores(record, ST, h=2.6, N=N, M=5.0)["E"])
+    assert np.isfinite(float(E(4.0))) and np.isnan(float(E(2.0)))
+    with pytest.raises(ValueError, match=r"scores\(\): N must be .*>= 3.*phi\^\(i\) must "
+                                         "vanish at both ends"):
+        mfmjax.scores(record, ST, h=2.6, N=2.0, M=5.0)  # eager: refused as identify does
 
 
 @pytest.fixture(scope="module")

@@ -287,6 +287,7 @@ def test_nonfinite_data_flagged(noisy):
         fit = mfmjax.srivc(bad, start)
     assert int(fit.status) & SrivcStatus.NONFINITE and not bool(fit.converged)
     assert np.all(np.isfinite(np.asarray(fit.theta)))
+    assert int(fit.model.status) & mfmjax.Status.NONFINITE  # the model said ok
 
 
 def test_an_input_zero_throughout_is_no_excitation_not_nonfinite(noisy):
