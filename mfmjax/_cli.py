@@ -185,6 +185,35 @@ def _whole(sig) -> tuple[float, float]:
     return (sig.t0, sig.t0 + (sig.n_samples - 1) * sig.dt)
 
 
+def _check_validation_window(args, sig) -> None:
+    """--validate-window inside the record and long enough for its observer, before the fit
+    (it was checked after the search, whose --save file was then written by a failed run)."""
+    if args.validate_window:
+        w = _record_window(args.validate_window, "validate-window", sig)
+        _observer_window(None, w, sig, "--validate-window")
+
+
+TIME_NAMES = ("t", "time", "Time", "TIME", "timestamp", "Timestamp", "datetime", "date")
+
+
+def _time_column_note(args) -> None:
+    """On stderr: --dt gives the times while the file has a column that looks like its own
+    time (a logging gap in it went unseen: the samples after it were shifted)."""
+    if args.dt is None or args.time is not None or args.names:
+        return
+    try:
+        with open(args.file, encoding="utf-8-sig") as fh:  # the header row only
+            header = [c.strip().strip('"') for c in fh.readline().lstrip("# ").split(",")]
+    except (OSError, UnicodeDecodeError):
+        return
+    used = {args.output, *_columns(args)}
+    found = [c for c in header if c in TIME_NAMES and c not in used]
+    if found:
+        print(f"note: --dt {args.dt:g} gives the sample times; the file's column {found[0]!r} "
+              f"is not read (--time {found[0]} reads it and checks that it is uniform)",
+              file=sys.stderr)
+
+
 def _validation_report(args, sig, model) -> dict | None:
     """fit % and E of `model` on --validate-window, the state from the initial-state observer
     over the window's first 20 % (eq. 14, 17)."""
@@ -194,7 +223,7 @@ def _validation_report(args, sig, model) -> dict | None:
 
     w = _record_window(args.validate_window, "validate-window", sig)
     ident = _identify_part(args, sig)
-    overlap = ident is None or (w[0] < ident[1] and ident[0] < w[1])
+    overlap = ident is None or (w[0] <= ident[1] and ident[0] <= w[1])  # both ends included
     from ._observers import observation
     from ._status import Status
 
@@ -272,6 +301,7 @@ def _load_signals(args, saved=None):
         names=[c.strip() for c in args.names.split(",")] if args.names else None,
         **kwargs,
     )
+    _time_column_note(args)
     if getattr(args, "detrend", None):
         from ._prepare import detrend
 
@@ -351,7 +381,10 @@ def _writable_folder(option: str, path) -> None:
 
 
 def _check_outputs(args) -> None:
-    """The output paths of any command, before it runs."""
+    """The output paths of any command, before it runs (--save's folder was checked after
+    the search, whose table was then lost)."""
+    if getattr(args, "save", None):
+        _writable_folder("--save", args.save)
     if getattr(args, "plot", None):
         if not os.path.splitext(args.plot)[1]:
             args.plot += ".png"  # what matplotlib writes; the JSON said "out" for out.png
@@ -425,6 +458,10 @@ def _model_settings_note(args, model) -> None:
             print(f"note: {option} {','.join(map(str, given))} is not used: the model's own "
                   f"({','.join(f'{v:g}' if isinstance(v, float) else v for v in own)}) are, "
                   "as it was identified with them", file=sys.stderr)
+    if getattr(args, "offset", None) is not None and bool(args.offset) != model.has_offset:
+        print(f"note: --{'offset' if args.offset else 'no-offset'} is not used: the model "
+              f"{'has' if model.has_offset else 'has no'} offset term of its own, which is "
+              "used as identified", file=sys.stderr)
 
 
 def _cmd_identify(args):
@@ -432,6 +469,7 @@ def _cmd_identify(args):
 
     full, trend = _load_signals(args)
     ident = _identify_part(args, full)
+    _check_validation_window(args, full)
     sig = full if ident is None else full.window(*ident)
     m = _ints(args.m, "m") if args.m else [0] * sig.n_inputs
     structure = mfmjax.Structure(args.n, m).for_inputs(sig.n_inputs)
@@ -552,10 +590,15 @@ def _online_config(args, K: int, dt: float, names):
     from ._online import OnlineConfig
 
     kwargs = _toml_settings(args)
-    if args.delays:
-        kwargs["delays"] = _floats(args.delays, "delays")
-    if args.intersample:
-        kwargs["intersample"] = [s.strip() for s in args.intersample.split(",")]
+    replaced = []  # said once the config is valid (a user error stays one line)
+    for key, option, value in (
+            ("delays", "--delays", args.delays and _floats(args.delays, "delays")),
+            ("intersample", "--intersample",
+             args.intersample and [s.strip() for s in args.intersample.split(",")])):
+        if value:
+            if key in kwargs and list(np.atleast_1d(kwargs[key])) != list(value):
+                replaced.append(f"note: {option} replaces {key} = {kwargs[key]} of --config")
+            kwargs[key] = value
     from_columns = {"output_name", "input_names"}  # --output and --inputs name them
     known = set(OnlineConfig.__dataclass_fields__) - {"dt", "n_inputs"} - from_columns
     named = sorted(set(kwargs) & from_columns)
@@ -580,6 +623,8 @@ def _online_config(args, K: int, dt: float, names):
                              "multiple of dt)") from None
         raise
     _check_memory(config)
+    for note in replaced:
+        print(note, file=sys.stderr)  # it did so without a word
     return config, given
 
 
@@ -706,11 +751,7 @@ def _cmd_online(args):
            "intervals": total["intervals"]}
     why = None
     if not total["count"]:  # say what held the first model back (the last interval's reason)
-        held = [e["action"] for e in ident.events if e.get("action", "none") != "none"]
-        why = (f"no prediction yet: {held[-1]}" if held else
-               "no prediction yet: no operating point was detected (the first model is "
-               "identified at the onset of a steady run: an interval where the output and "
-               "every input vary less than steady_rel times their variance so far)")
+        why = ident.why_no_prediction()
         res["mse_note"] = why
     if args.plot:
         from ._plotting import plot_online
@@ -850,7 +891,13 @@ def _cmd_search(args):
 
     grid_delays = args.delays
     args.delays = None
+    if args.estimate and (args.validate or args.score is not None):
+        raise _UserError("--estimate ranks the structures by E on blocks held back from "
+                         "--identify-window (--holdout); --validate and --score rank the plain "
+                         "search: give them without --estimate")
+    args.score = args.score or "E"
     sig, trend = _load_signals(args)
+    _check_validation_window(args, sig)
     K = sig.n_inputs
     kwargs = dict(
         n=_grid(args.n, "n", True),
@@ -921,14 +968,14 @@ def _cmd_search(args):
         sig_best = _with_delays(sig if ident is None else sig.window(*ident), best.delays)
         report = _refine_report(sig_best, best, bool(grid_delays))
     cov = report.pop("covariance", None) if report else None  # saved for report's bands
-    if args.save:
+    validation = _validation_report(args, sig, report["model"] if report else result.best())
+    if args.save:  # after everything that can fail: a failed command writes no file
         from ._analysis import usable_covariance
         from ._persist import save_model
 
         saved = report["model"] if report else result.best()
         save_model(saved, args.save, covariance=usable_covariance(saved, cov),
                    record=_record(args, sig, trend))
-    validation = _validation_report(args, sig, report["model"] if report else result.best())
     if not args.estimate:  # estimate's notes say it, with its own decision
         _offset_note(sig)  # after the work: a user error stays one line
     _no_inputs_note(args)
@@ -1118,7 +1165,8 @@ def main(argv=None) -> int:
     p.add_argument("--N", default="3:5", help="exponent N grid (default 3:5)")
     p.add_argument("--M", default="3:5", help="exponent M grid (default 3:5)")
     p.add_argument("--h", required=True, help="widths h, list a,b,c")
-    p.add_argument("--score", default="E", choices=["E", "J", "fit", "aic", "bic"])
+    p.add_argument("--score", default=None, choices=["E", "J", "fit", "aic", "bic"],
+                   help="ranking score (default E; not with --estimate)")
     p.add_argument("--validate", help="T0,T1 validation window (default: whole record)")
     p.add_argument("--observer-window", type=_number("observer-window", lo=0, lo_open=True),
                    help="length of the initial-state observer from the start of the window E "

@@ -261,7 +261,9 @@ def demo(out: str = "mfmjax-demo", horizon: float | None = None, mode: str = "im
         print(paper_tables(ident.models, end))
         delays = delay_table(ident.models, data, guess=r["delay"])
         print("\n" + format_delay_table(delays))
-        shown = f"{mse:.4f} degC^2" if math.isfinite(mse) else "undefined (no prediction yet)"
+        shown = (f"{mse:.4f} degC^2" if math.isfinite(mse) else  # say why (it did not)
+                 f"undefined ({ident.why_no_prediction()}; a longer --horizon lets the plant "
+                 "reach an operating point)")
         print(f"mean square prediction error: {shown} (paper: {PAPER_MSE[ex]})\n")
         fig_in = os.path.join(out, f"experiment{ex}_inputs.png")
         fig_pred = os.path.join(out, f"experiment{ex}_prediction.png")

@@ -393,14 +393,20 @@ def performance_index(model: Model, signals: Signals, window=None, *, observer_w
     return observe(model, signals, window, observer_window=observer_window).E
 
 
+CONSTANT_RTOL = 1e-12  # y's spread below this fraction of |y| (per sample): constant to rounding
+
+
 def masked_fit_percent(y, y_sim, valid):
     """`fit_percent` (traced) of the first `valid` samples of y and y_sim (a padded window;
-    all of them for `valid` = len(y)); NaN for a constant y."""
+    all of them for `valid` = len(y)); NaN for a y that is constant, also to rounding (its
+    mean's rounding left a spread of 1e-14 at a level of 97, and fits of -1e16 %)."""
     keep = jnp.arange(y.shape[0]) < valid
     mean = jnp.sum(jnp.where(keep, y, 0.0)) / valid
     spread = jnp.linalg.norm(jnp.where(keep, y - mean, 0.0))
     miss = jnp.linalg.norm(jnp.where(keep, y - y_sim, 0.0))
-    return 100.0 * (1.0 - miss / jnp.where(spread > 0, spread, jnp.nan))
+    level = jnp.max(jnp.where(keep, jnp.abs(y), 0.0))
+    moves = spread > CONSTANT_RTOL * level * jnp.sqrt(jnp.asarray(valid, jnp.float64))
+    return 100.0 * (1.0 - miss / jnp.where(moves, spread, jnp.nan))
 
 
 def fit_percent(y, y_sim):

@@ -1361,6 +1361,15 @@ class OnlineIdentifier:
         p = self.prediction
         return p["sse"] / p["count"] if p["count"] else math.nan
 
+    def why_no_prediction(self) -> str:
+        """Why nothing was predicted yet, in words: the last interval's action that held the
+        first model back (`events`), or that no operating point was detected."""
+        held = [e["action"] for e in self.events if e.get("action", "none") != "none"]
+        return (f"no prediction yet: {held[-1]}" if held else
+                "no prediction yet: no operating point was detected (the first model is "
+                "identified at the onset of a steady run: an interval where the output and "
+                "every input vary less than steady_rel times their variance so far)")
+
     def model(self, number: int = -1) -> Model:
         """A model record as a `Model`: `number` indexes `models` (0-based, so the table's
         model nr k is `model(k - 1)`; default -1, the current one)."""

@@ -225,6 +225,13 @@ def test_validate_and_report_say_when_the_columns_differ_from_the_models(csv_fil
     assert "warning: observe()" not in err  # the note says it (not the library's warning too)
     assert main(["validate", *common, "--inputs", "u1,u2", "--delays", "0,0"]) == 0  # its own
     assert "not used" not in capsys.readouterr().err
+    # --offset / --no-offset against the model's own term: said not to be used (silent before)
+    from mfmjax import load_model
+
+    own = load_model(str(model_path)).has_offset
+    flag = "--no-offset" if own else "--offset"
+    assert main(["validate", *common, "--inputs", "u1,u2", flag]) == 0
+    assert f"note: {flag} is not used: the model has" in capsys.readouterr().err
     # data read unlike the model's (saved with it: dt and --detrend): a model of detrended
     # data validated on the raw record gave fit -23434 %, one of a time column in seconds on
     # minutes -2 %, both with nothing said
@@ -559,3 +566,36 @@ def test_output_paths_are_checked_before_the_command_runs(csv_file, tmp_path, ca
     assert capsys.readouterr().err.strip() == (
         f"error: -o {csv_file}: a file of that name exists; report writes a folder of "
         "figures: give a new or existing folder")
+
+
+def test_cli_audit_slips_are_said_before_the_work(csv_file, tmp_path, capsys):
+    """A CLI audit's slips: --save into a missing folder and a --validate-window outside the
+    record were found after the search (the table lost; a model file written by a command
+    that then failed with exit 2); --estimate dropped --validate and --score without a word;
+    --dt beside the file's own time column ignored it (a logging gap in it went unseen); a
+    --validate-window sharing its first sample with --identify-window's last got no overlap
+    warning (both ends are included)."""
+    search = ["search", str(csv_file), *ARGS[:ARGS.index("--n")], "--n", "1,2", "--N", "3",
+              "--M", "3", "--h", "1.0", "--time", "t", "--intersample", "foh,zoh"]
+    saved = tmp_path / "m.json"
+    assert main(search + ["--save", str(tmp_path / "nofolder" / "m.json")]) == 2
+    err = capsys.readouterr().err
+    assert "--save" in err and "does not exist" in err and len(err.strip().splitlines()) == 1
+    assert main(search + ["--save", str(saved), "--validate-window", "15,50"]) == 2
+    err = capsys.readouterr()
+    assert "--validate-window 15,50 must lie inside the record" in err.err
+    assert not saved.exists() and "candidates" not in err.out  # checked before the search
+    for extra in (["--validate", "5,19"], ["--score", "fit"]):
+        assert main(search + ["--estimate", *extra]) == 2
+        assert "--validate and --score rank the plain search" in capsys.readouterr().err
+    ident = ["identify", str(csv_file), *ARGS]
+    dt_args = ident[:]
+    i = dt_args.index("--time")
+    dt_args[i:i + 2] = ["--dt", "0.01"]
+    assert main(dt_args) == 0
+    assert ("note: --dt 0.01 gives the sample times; the file's column 't' is not read "
+            "(--time t reads it") in capsys.readouterr().err
+    assert main(ident + ["--identify-window", "0,10", "--validate-window", "10,19.99"]) == 0
+    assert "WARNING: the window overlaps the identification data" in capsys.readouterr().out
+    assert main(ident + ["--identify-window", "0,10", "--validate-window", "10.01,19.99"]) == 0
+    assert "overlaps" not in capsys.readouterr().out

@@ -311,6 +311,15 @@ def test_cli_online_table_plot_json(switching, switching_csv, tmp_path, capsys):
     assert main(["online", *args]) == 0
     text = capsys.readouterr().out
     assert "mean square prediction error" in text and "p2" in text and "E_reident" in text
+    # --delays beside a --config that sets delays replaces them: said (it was silent)
+    cfg.write_text("n = [2]\ninterval = 250\ntr_corr = 0.5\ndelays = [3.0, 0.0]\n")
+    head_short = tmp_path / "short.csv"  # 3 intervals: the note is all this checks
+    head_short.write_text("\n".join(switching_csv.read_text().splitlines()[: 1 + 3 * S]) + "\n")
+    short = [str(head_short), *args[1:]]
+    assert main(["online", *short, "--delays", "0,0"]) == 0
+    assert "note: --delays replaces delays = [3.0, 0.0] of --config" in capsys.readouterr().err
+    assert main(["online", *short, "--delays", "3,0"]) == 0
+    assert "replaces" not in capsys.readouterr().err
 
 
 def test_cli_online_checkpoint_resume(switching, switching_csv, tmp_path, capsys):

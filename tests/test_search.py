@@ -469,3 +469,24 @@ def test_search_says_when_delays_reach_before_the_record_or_fit_is_undefined():
     with pytest.raises(ValueError, match=r"score='fit' is undefined on this validation window: "
                                          "the output is constant there"):
         mfmjax.search(flat, validate=(40.0, (T - 1) * dt), score="fit", **grid)
+
+
+def test_fit_on_a_validation_window_where_the_output_is_constant_is_nan():
+    """The output at a level (97.5, as the DaISy exchanger's first 100 samples) and constant
+    on the validation window: the fit's denominator was the rounding of its mean (1e-14) and
+    the table read -3.8e14 % ... -9.0e16 %, where `fit_percent` and `validate` say undefined.
+    It is NaN now (spread below 1e-12 of |y| per sample); E is unchanged."""
+    y, u, dt = _level_record(T=1200)
+    y = y + 97.5
+    y[600:] = y[600]
+    sig = Signals(y, u, dt=dt, offset=True)
+    res = mfmjax.search(sig, n=(1, 2), N=3, M=3, h=3.0, validate=(32.0, 59.95))
+    fits = np.asarray(res.columns["fit"])
+    assert np.all(np.isnan(fits)) and np.all(np.isfinite(np.asarray(res.columns["E"])))
+    moving = mfmjax.search(sig, n=(1, 2), N=3, M=3, h=3.0, validate=(5.0, 29.95))
+    assert np.all(np.isfinite(np.asarray(moving.columns["fit"])))
+    # an unstable row's fit of -5.6e70 % printed with 70 digits and pushed the table's columns
+    from mfmjax._search._result import _fit_text
+
+    assert (_fit_text(-5.57e70), _fit_text(-999.994), _fit_text(97.123), _fit_text(None)) == \
+        ("<-1000", "-999.99", "97.12", "-")

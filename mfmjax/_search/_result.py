@@ -119,7 +119,7 @@ class SearchResult(eqx.Module):
             lines.append(
                 f"{r['rank']:>4} {r['n']:>2} {','.join(map(str, r['m'])):>8} {r['N']:>4} "
                 f"{r['M']:>4} {r['h']:>9.4g} {','.join(f'{d:g}' for d in r['delays']):>14} "
-                f"{_fmt(r['J'], '.3e'):>10} {_fmt(r[E], '.4e'):>11} {_fmt(r[fit], '.2f'):>8} "
+                f"{_fmt(r['J'], '.3e'):>10} {_fmt(r[E], '.4e'):>11} {_fit_text(r[fit]):>8} "
                 f"{_fmt(r['aic'], '.1f'):>10} {_fmt(r['bic'], '.1f'):>10}  {r['status']}"
             )
         return "\n".join(lines)
@@ -158,6 +158,12 @@ def _compact_theta(theta_pad, n, m, res: SearchResult):
 
 def _fmt(v, spec):
     return "-" if v is None else format(v, spec)
+
+
+def _fit_text(v) -> str:
+    """A fit % in the table: below -1000 as "<-1000" (an unstable row's 70-digit fit pushed
+    the columns after it out of line), as `Estimate.summary` prints it."""
+    return "-" if v is None else "<-1000" if v < -1000 else format(v, ".2f")
 
 
 HELD = "E_holdout"  # a hold-out search's column (`_selection.holdout_search`)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from .._linalg import hurwitz
+from .._observers import masked_fit_percent
 from .._padded import observe_padded
 from .._quadrature import shift_samples
 from .._signals import Signals
@@ -20,16 +21,7 @@ def validate_candidate(sig: Signals, v_length: int, c, where):
     yv = shift_samples(sig.y, 0, start + jnp.arange(v_length))  # may run past the end
     obs = observe_padded(sig, c, start, v_length, where["ob"], valid)
     status = obs.status | jnp.where(hurwitz(c["a"]), 0, Status.UNSTABLE)
-    inside = jnp.arange(v_length) < valid
     Nv = valid.astype(jnp.float64)
     loglik = Nv * jnp.log(jnp.maximum(obs.E / (Nv * sig.dt), 1e-300))
-    return dict(E=obs.E, fit=_fit(yv, obs.y_sim, inside, Nv), aic=loglik + 2 * c["k"],
+    return dict(E=obs.E, fit=masked_fit_percent(yv, obs.y_sim, valid), aic=loglik + 2 * c["k"],
                 bic=loglik + c["k"] * jnp.log(Nv), status=status)
-
-
-def _fit(y, y_sim, inside, count):
-    """`fit_percent` on the samples `inside` (`count` of them)."""
-    y_mean = jnp.sum(jnp.where(inside, y, 0.0)) / count
-    spread = jnp.sqrt(jnp.sum(jnp.where(inside, (y - y_mean) ** 2, 0.0)))
-    miss = jnp.sqrt(jnp.sum(jnp.where(inside, (y - y_sim) ** 2, 0.0)))
-    return 100.0 * (1.0 - miss / jnp.where(spread > 0, spread, jnp.nan))
