@@ -322,9 +322,9 @@ def _grid_numbers(fn, name, value, **kw):
 
 
 def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
-                 chunk_size, simulate, progress, identify=None) -> None:
-    """search(): every grid and option checked for kind and range before anything is built."""
-    fn = "search"
+                 chunk_size, simulate, progress, identify=None, fn: str = "search") -> None:
+    """search() (or `fn`, e.g. estimate, which checks its grid as search does): every grid
+    and option checked for kind and range before anything is built."""
     require_x64(fn)
     signals = _signals_arg(fn, signals)
     eager_only(fn, signals, n, N, M, h, m, delays, validate, observer_window, eta)
@@ -359,8 +359,16 @@ def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_wi
                 not identify:
             raise TypeError(f"{fn}(): identify must be a window (t0, t1) or a list of windows, "
                             f"got {_show(identify)}")
-        for w in ([identify] if np.isscalar(identify[0]) else identify):
+        wins = [identify] if np.isscalar(identify[0]) else list(identify)
+        for w in wins:
             window(fn, "identify", w)
+        ordered = sorted((float(a), float(b)) for a, b in wins)
+        for (a0, a1), (b0, b1) in zip(ordered, ordered[1:]):
+            if b0 <= a1:  # both ends included: a shared sample overlaps too
+                raise ValueError(f"{fn}(): the identify windows ({a0:.15g}, {a1:.15g}) and "
+                                 f"({b0:.15g}, {b1:.15g}) overlap: the Gram would count their "
+                                 "common samples twice (and a hold-out block could lie inside "
+                                 "the fitted data); give disjoint windows or merge them")
     if observer_window is not None:
         number(fn, "observer_window", observer_window, lo=0, lo_open=True)
     _eta(fn, eta)

@@ -151,6 +151,14 @@ def estimate(
     """
     records, single = as_records("estimate", signals)
     _b.eager_only("estimate", records, h, n, N, M, m, delays, identify, validate)
+    if delays is None:  # the batch is planned once: record 0's delays served every record
+        for i, r in enumerate(records[1:], 1):
+            if not np.array_equal(np.asarray(r.delays), np.asarray(records[0].delays)):
+                raise ValueError(f"estimate(): record {i} has the input delays "
+                                 f"{np.asarray(r.delays).tolist()} and record 0 "
+                                 f"{np.asarray(records[0].delays).tolist()}; a batch uses one "
+                                 "set: give a delay grid (delays=...) to search them, or call "
+                                 "estimate on each record")
     if polish is not None and not isinstance(polish, bool):
         raise TypeError(f"estimate(): polish must be True or False (or None: decided on the "
                         f"hold-out data), got {polish!r}")
@@ -167,7 +175,7 @@ def estimate(
             raise ValueError("estimate(): identify windows need selection='holdout'")
         kw = dict(n=n, N=N, M=M, h=h, m=m, delays=delays, score=score, validate=validate,
                   observer_window=None, eta=None, chunk_size=CHUNK_SETTINGS, simulate=True)
-        check_search(first, progress=None, **kw)
+        check_search(first, progress=None, fn="estimate", **kw)
         plan = plan_search(first, **kw)
         stages = dict(polish=bool(polish), max_iter=max_iter, tol=tol)
         results = overlapped(lambda: run_plan(plan, first, records=records),
@@ -191,7 +199,8 @@ def estimate(
         grid = dict(n=n, N=N, M=M, h=h, m=m, delays=delays)
         # the grid's kinds and ranges as `search` checks them (h='25' ran: read as 25.0)
         check_search(first, score="E", validate=None, observer_window=None, eta=None,
-                     chunk_size=CHUNK_SETTINGS, simulate=True, progress=None, **grid)
+                     chunk_size=CHUNK_SETTINGS, simulate=True, progress=None, identify=identify,
+                     fn="estimate", **grid)
         stages = dict(holdout=holdout, polish=polish, max_iter=max_iter, tol=tol)
         sels = holdout_search(first, estimation=identify, holdout=holdout, folds=folds,
                               records=records, meanwhile=_rehearsal(
@@ -220,7 +229,14 @@ def estimate(
     edges = [] if delays is None else delay_grids(delays)
     doubtful = {}  # warned once per batch: {first record's text: records}
     n_top = max(grid_values(n, "n"))
-    checked = residual_notes(records, outs, n_top, whole=identify is None)
+    if identify is None:
+        checked = residual_notes(records, outs, n_top)
+    elif np.isscalar(identify[0]):  # on the estimation window only (they read the data the
+        # user kept back, and across a concatenated record's junctions)
+        checked = residual_notes([rec.window(*identify) for rec in records], outs, n_top)
+    else:  # several windows (experiments laid end to end?): no residual test across them
+        checked = [(("residual tests not run: several estimation windows (run residuals("
+                     "model, record.window(t0, t1)) on each)",), False, False)] * len(outs)
     if polish is None:  # not at rest: output error (it fits x0) where it converges
         outs = _from_rest_to_output_error(records, outs, checked, n_top)
     for r, (o, (notes, serious, _)) in enumerate(zip(outs, checked)):
@@ -269,12 +285,12 @@ RESIDUAL_LAGS = 25  # lags of the residual tests (`residuals`), at most a quarte
 START_RATIO = 1.2  # SRIVC's from-rest residual variance over the observer-started one
 
 
-def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = False,
-                   whole: bool = True) -> list:
+def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = False) -> list:
     """(notes, serious: the first note is warned, not at rest) per record. First the
     residual tests of `residuals` (Box-Pierce whiteness, and independence from each input,
     1 % level) of each returned model on its
-    whole record, the state from the observer over the record (`residuals`' default), by the
+    record (the estimation window's samples: `records` as the model was fitted on them), the
+    state from the observer over the record (`residuals`' default), by the
     hold-out's padded observer program (`observe_candidate`, one for every order up to
     `n_max`; rehearsed with the stages). Residuals correlated with an input mean unmodelled
     dynamics or a wrong delay (serious: warned); coloured residuals alone mean noise that is
@@ -283,8 +299,7 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
     residual variance (its simulation from rest) over the observer-started one above
     `START_RATIO`: the record does not start at rest, and SRIVC's standard errors leave out
     that start-up transient (1.4-2.1x too small on records cut 2 s after an input switch,
-    ratios 1.37-2.2 there against 1.002-1.007 from rest; only where SRIVC was fitted on the
-    whole record, `whole`: not on `identify` windows). Nothing for a flagged or unstable
+    ratios 1.37-2.2 there against 1.002-1.007 from rest). Nothing for a flagged or unstable
     model, nor where the returned stage did not converge (its summary already says so; the
     `rehearsal` compiles the program whatever its stand-in's stages did)."""
     from ._analysis import residual_tests
@@ -313,7 +328,7 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
         stats = residual_tests(e, u, lags, y=rec.y)
         bad = [name for name, ok in zip(rec.input_names, stats["independent"]) if ok is False]
         notes = []
-        exact = stats["white"] is None  # rounding-level residuals: no test (`EXACT_FIT`)
+        exact = float(e @ e) <= exact_floor(rec.y)  # rounding-level residuals: no test
         if exact:
             notes.append(f"the model reproduces the record to rounding (residual RMS "
                          f"{np.sqrt(np.mean(e * e)):.2g}, output std {np.std(rec.y):.3g}): "
@@ -332,7 +347,7 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
                          + " (see residuals(model, signals))")
         fit = outs[r].srivc
         ratio = (float(fit.sigma2) / float(np.mean(e * e))  # SRIVC fitted on the record
-                 if whole and outs[r].method == "srivc" and fit is not None and not exact
+                 if outs[r].method == "srivc" and fit is not None and not exact
                  else 0.0)
         if ratio > START_RATIO:
             notes.append(f"SRIVC's simulation from rest leaves {ratio:.2f}x the residual "

@@ -462,8 +462,8 @@ class Signals(eqx.Module):
                              f"sample (t = {self.t0 + a * dt:g}) of the grid of step {dt:g}; a "
                              "window needs at least 2 samples: widen it")
         if not 0 <= a < b <= T - 1:
-            raise ValueError(f"Signals.window(): ({float(t0):g}, {float(t1):g}) must lie inside "
-                             f"the record [{self.t0:g}, {self.t0 + (T - 1) * dt:g}]")
+            raise ValueError(f"Signals.window(): ({float(t0):.15g}, {float(t1):.15g}) must lie "
+                             f"inside the record [{self.t0:.15g}, {self.t0 + (T - 1) * dt:.15g}]")
         if _b.is_traced(self.y) or _b.is_traced(self.u):
             y, u = self.y[a:b + 1], self.u[a:b + 1]
         else:  # sliced on the host: no program per window length

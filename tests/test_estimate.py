@@ -764,3 +764,42 @@ def test_estimate_not_converging_on_a_fast_growing_plant_says_it_may_be_unstable
                                          r"may be.*shorter record"):
         est = mfmjax.estimate(sig, h=2.0, n=(2,), N=3, M=3, m=[[0]])
     assert not est.converged and "NOT CONVERGED" in est.summary()
+
+
+def test_estimate_batch_and_windows_refuse_what_they_would_get_wrong():
+    """A windows audit: a batch of records with different input delays was planned with
+    record 0's (the second record's model came back with delay 0 and a = (0.87, 0.72, 1)
+    against (0.9995, 0.80, 1) alone, no warning); overlapping identify windows were summed
+    twice in the Gram and a hold-out block could lie inside the fitted data. Both refused
+    before any work."""
+    a, b = _realisations(20.0, (1, 2))
+    late = mfmjax.Signals(b.y, b.u, dt=DT, intersample="zoh", delays=[0.5])
+    with pytest.raises(ValueError, match=r"estimate\(\): record 1 has the input delays \[0.5\] "
+                                         r"and record 0 \[0.0\]; a batch uses one set"):
+        mfmjax.estimate([a, late], **SMALL)
+    for fn in (mfmjax.estimate, mfmjax.search):
+        with pytest.raises(ValueError, match=r"the identify windows \(0, 40\) and \(30, 60\) "
+                                             "overlap: the Gram would count"):
+            fn(a, identify=[(0.0, 40.0), (30.0, 60.0)], **SMALL)
+
+
+def test_estimate_residual_tests_read_the_estimation_window_only():
+    """With identify=(t0, t1) the residual tests ran on the whole record, reading the data
+    the user kept back: here the plant changes after the estimation window (a gain 3x), and
+    the returned model got the note "the residuals are not white ... the standard errors ...
+    are then too small" (on a concatenated record an audit saw "correlated with the input",
+    warned). They read the estimation window now, where the model is right: no note."""
+    rec = _realisations(20.0, (5,))[0]
+    other = Model.from_coefficients([2.0, 3.0, 1.0], [[3.0]], intersample=["zoh"])
+    y = np.asarray(rec.y).copy()
+    half = T // 2
+    y[half:] += np.asarray(mfmjax.simulate(other, rec.u, dt=DT))[half:] - \
+        np.asarray(mfmjax.simulate(TRUE, rec.u, dt=DT))[half:]
+    sig = mfmjax.Signals(y, rec.u, dt=DT, intersample="zoh", offset=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est = mfmjax.estimate(sig, identify=(0.0, (half - 1) * DT), **SMALL)
+    assert est.model.n == 2
+    assert not any("correlated" in str(w.message) for w in caught), [str(w.message)
+                                                                      for w in caught]
+    assert not any("residuals" in n for n in est.notes), est.notes
