@@ -223,7 +223,8 @@ def _validation_report(args, sig, model) -> dict | None:
 
     w = _record_window(args.validate_window, "validate-window", sig)
     ident = _identify_part(args, sig)
-    overlap = ident is None or (w[0] <= ident[1] and ident[0] <= w[1])  # both ends included
+    # windows that only touch (0,30 and 30,45: one shared sample) are adjacent, not flagged
+    overlap = ident is None or (w[0] < ident[1] and ident[0] < w[1])
     from ._observers import observation
     from ._status import Status
 

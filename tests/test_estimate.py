@@ -137,7 +137,7 @@ def test_cli_search_estimate(noisy, tmp_path, capsys):
                delimiter=",", header="y,u", comments="")
     args = ["search", str(path), "--output", "y", "--inputs", "u", "--dt", str(DT),
             "--intersample", "zoh", "--n", "1:3", "--N", "3:4", "--M", "3:4", "--h", "2,3",
-            "--score", "bic", "--estimate"]
+            "--estimate"]  # (a --score bic here was dropped silently; now refused)
     assert main(args) == 0
     text = capsys.readouterr().out
     assert "method: MFM search -> srivc" in text and "std error" in text
