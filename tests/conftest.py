@@ -44,20 +44,22 @@ def _fresh_jax_caches():
     _executables.clear()
 
 
-# The test files in decreasing order of their time in the 2026-11-24 suite (seconds on one
-# worker, measured), the rest after them in collection order. With `--no-loadscope-reorder`
+# The test files in decreasing order of their time in the suite (seconds on one worker,
+# summed from a run's junit report, 2026-11-27 on the 2-core machine), the rest after them in
+# collection order. With `--no-loadscope-reorder`
 # (pyproject addopts) pytest-xdist's `loadfile` hands whole files to the workers in this order,
 # each worker taking the next file when it is almost done: longest first, so the two workers
 # end together (without it, xdist orders files by their number of tests, and one worker sat
 # idle for 19 s at the end while the other ran test_notebooks.py).
-FILE_SECONDS = {"test_search.py": 78, "test_cache.py": 68, "test_settings_values.py": 60,
-                "test_selection.py": 53, "test_estimate.py": 53, "test_notebooks.py": 47,
-                "test_refine.py": 44, "test_fuzz.py": 42, "test_online.py": 38,
-                "test_identify.py": 33, "test_cli.py": 22, "test_output_error.py": 19,
-                "test_demo_modes.py": 19, "test_observers.py": 19, "test_boundary_cli.py": 18,
-                "test_quadrature.py": 18, "test_srivc.py": 15, "test_properties.py": 12,
-                "test_report_cli.py": 11, "test_linalg.py": 11, "test_gram_solve.py": 9,
-                "test_prepare.py": 7, "test_analysis.py": 6}
+FILE_SECONDS = {"test_settings_values.py": 177, "test_search.py": 142, "test_estimate.py": 140,
+                "test_cache.py": 99, "test_selection.py": 81, "test_cli.py": 79,
+                "test_notebooks.py": 70, "test_refine.py": 65, "test_identify.py": 60,
+                "test_fuzz.py": 52, "test_online.py": 51, "test_observers.py": 42,
+                "test_output_error.py": 31, "test_srivc.py": 30, "test_quadrature.py": 29,
+                "test_demo_modes.py": 28, "test_linalg.py": 20, "test_gram_solve.py": 19,
+                "test_properties.py": 17, "test_report_cli.py": 15, "test_boundary_cli.py": 13,
+                "test_boundary_api.py": 12, "test_prepare.py": 11, "test_analysis.py": 10,
+                "test_modulating.py": 7, "test_datasets.py": 5}
 
 
 def pytest_collection_modifyitems(items):
