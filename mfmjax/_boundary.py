@@ -296,6 +296,23 @@ def start_layout(fn: str, model, signals) -> None:
                          f"Signals(..., offset={model.has_offset})")
 
 
+def delays_note(fn: str, model, signals) -> None:
+    """Warn (public entry points only) where the start's delays, which the fit uses, differ
+    from delays the signals were given (nonzero): a start built with delays 0 fitted a wrong
+    model silently (a = [0.77, 1.27] for [2, 3] with the record's 0.5 s dead time). Signals at
+    zero delays and a start with delays from a search's grid is the usual path: not said."""
+    if is_traced(model.delays) or is_traced(signals.delays):
+        return
+    d_model, d_sig = np.asarray(model.delays), np.asarray(signals.delays)
+    if np.any(d_sig != 0) and not np.array_equal(d_model, d_sig):
+        import warnings
+
+        warnings.warn(f"{fn}(): the start model's delays {d_model.tolist()} are used, not the "
+                      f"signals' own {d_sig.tolist()}; give the start the record's delays "
+                      "(Model.from_coefficients(..., delays=...), or identify it on these "
+                      "signals) if those are the plant's", stacklevel=user_stacklevel())
+
+
 def _eta(fn: str, eta) -> None:
     if eta is not None and not is_traced(eta):
         array(fn, "eta", eta, ndim=1, fix="give a finite constraint vector")

@@ -257,6 +257,20 @@ class OnlineConfig(eqx.Module):
             raise TypeError(f"OnlineConfig(): offset must be True or False, got {offset!r}")
         self.offset = bool(offset)
         p = max(self.n) + 1 + sum(max(mk) + 1 for mk in self.m) + int(self.offset)
+        # the first identification's window (n_start intervals) must leave the search enough
+        # valid samples (as `identify` requires): h = 600 on a 500-sample window passed here
+        # and raised at the first identification, at every retry (the state does not advance)
+        from ._gram import MIN_VALID
+        from ._quadrature import kernel_length
+
+        first = n_start * interval / dt
+        support = kernel_length(max(self.h) + max(self.delays), dt) - 1
+        if first - support < max(MIN_VALID, 2 * p):
+            raise ValueError(
+                f"OnlineConfig(): h + delay ({max(self.h) + max(self.delays):g}) leaves "
+                f"{max(int(first - support), 0)} valid samples of the first identification "
+                f"window (n_start x interval = {n_start * interval:g}), fewer than the "
+                f"{max(MIN_VALID, 2 * p)} the search needs; lower h or raise n_start")
         if eta is not None:
             eta = _b.array(fn, "eta", eta, ndim=1, fix="give a finite constraint vector")
             if eta.shape != (p,):
@@ -530,13 +544,19 @@ def _interval_stats(state: OnlineState, j: int):
     return valid, steady, corr, new, noise, level
 
 
-def _model_record(config, model: dict, window, E_current, E_reident, reason, j, op_label):
+def _model_record(config, model: dict, window, E_current, E_reident, reason, j, op_label,
+                  sim_start=None):
+    """The record of a model adopted at the end of interval j, fitted on `window` (t_start,
+    t_end: the end exclusive, the time one sample after the window's last); it predicts from
+    `sim_start` (default the window's end: the end of interval j where the window ends there;
+    improved mode's winner fitted one interval early passes the end of interval j)."""
     n, m = int(model["n"]), [int(v) for v in model["m"]]
     return {
         "model": int(model["number"]), "operating_point": op_label,
         "operating_point_time": float(model["op_time"]),
         "ident_window": [float(window[0]), float(window[1])],
-        "sim_start": float(window[1]), "sim_end": None, "interval": j,
+        "sim_start": float(window[1] if sim_start is None else sim_start), "sim_end": None,
+        "interval": j,
         "N": plain_number(model["N"]), "M": plain_number(model["M"]), "h": float(model["h"]), "n": n, "m": m,
         "a": [float(v) for v in model["a"][: n + 1]],
         "b": [[float(v) for v in model["b"][k][: m[k] + 1]] for k in range(config.n_inputs)],
@@ -978,6 +998,9 @@ def _close_interval(state: OnlineState, j: int):
             event["action"] = spike
         elif c.mode == "improved":
             best, E_cur, E_best, window, on = _improved_choice(state, j, w, model if has else None)
+            # the model predicts from the end of interval j, also when it was fitted on the
+            # window one interval earlier (its sim_start said that window's end, one early)
+            t_next = float(state.t0) + (j + 1) * S * c.dt
             factor = 1.0 - (c.min_improvement if "hold" in c.improvements else 0.0)
             E_cur_ok = E_cur is not None and math.isfinite(E_cur)
             event.update(E_current=E_cur if E_cur_ok else None, E_reident=E_best, E_on=on)
@@ -986,7 +1009,8 @@ def _close_interval(state: OnlineState, j: int):
             elif not has:
                 new = _as_model(c, best, 1, 1, op_time)
                 event.update(action="first model")
-                record = _model_record(c, new, window, None, E_best, "first model", j, "p1")
+                record = _model_record(c, new, window, None, E_best, "first model", j, "p1",
+                                       sim_start=t_next)
                 state = eqx.tree_at(lambda s: (s.model, s.op_count), state, (new, np.asarray(1)))
             elif not E_cur_ok or E_best < factor * E_cur:
                 same_op = float(model["op_time"]) == op_time
@@ -994,7 +1018,7 @@ def _close_interval(state: OnlineState, j: int):
                 new = _as_model(c, best, int(model["number"]) + 1, op, op_time)
                 event["action"] = (f"model updated: E_reident < {factor:g} E_current ({on})")
                 record = _model_record(c, new, window, event["E_current"], E_best,
-                                       event["action"], j, f"p{op}")
+                                       event["action"], j, f"p{op}", sim_start=t_next)
                 state = eqx.tree_at(lambda s: (s.model, s.op_count), state,
                                     (new, np.asarray(op)))
             else:
@@ -1362,11 +1386,17 @@ class OnlineIdentifier:
         return p["sse"] / p["count"] if p["count"] else math.nan
 
     def why_no_prediction(self) -> str:
-        """Why nothing was predicted yet, in words: the last interval's action that held the
-        first model back (`events`), or that no operating point was detected."""
+        """Why nothing was predicted yet (while `mse()` is NaN), in words: the last interval's
+        action that held the first model back (`events`), or that no operating point was
+        detected; unknown where the events are not kept (`keep_history=False`, or before a
+        `load`)."""
         held = [e["action"] for e in self.events if e.get("action", "none") != "none"]
-        return (f"no prediction yet: {held[-1]}" if held else
-                "no prediction yet: no operating point was detected (the first model is "
+        if held:
+            return f"no prediction yet: {held[-1]}"
+        if not self.keep_history or self._resumed:  # no events to read: do not guess
+            return ("no prediction yet (why is not known: the events are not kept with "
+                    "keep_history=False or across a load)")
+        return ("no prediction yet: no operating point was detected (the first model is "
                 "identified at the onset of a steady run: an interval where the output and "
                 "every input vary less than steady_rel times their variance so far)")
 

@@ -57,7 +57,11 @@ class OutputErrorFit(eqx.Module):
             lines.append(f"NOT DETERMINED by the data (infinite std error, the value is "
                          f"arbitrary): {', '.join(lost)}")
         if self.stabilised:
-            lines.append("start was unstable: its right-half-plane poles were mirrored first")
+            lines.append("start was unstable: its right-half-plane poles were mirrored first "
+                         "(E start is the mirrored start's)")
+        if int(self.model.status) & Status.UNSTABLE:
+            lines.append("UNSTABLE: the fitted A(s) has a root with Re >= 0 (see the model's "
+                         "status): validate it before use")
         lines.append(f"converged ({self.result})" if self.converged else
                      f"NOT CONVERGED ({self.result} after {self.steps} steps): the estimate is "
                      "the best iterate; raise max_steps or start from a better model")
@@ -202,6 +206,7 @@ def output_error(
         return _output_error_batch(signals, model, window, max_steps, rtol, atol)
     check_output_error(signals, window_=window, max_steps=max_steps, rtol=rtol, atol=atol)
     _eager_only(signals, model)
+    _b.delays_note("output_error", model, signals)
     residual, meta = _prepare(signals, model, window, rehearse=(max_steps, rtol, atol))
     return _finish(residual, meta, _lm(residual, *_lm_arguments(residual.size, max_steps, rtol,
                                                                 atol)))
@@ -383,9 +388,14 @@ def _finish(residual, meta, solved) -> OutputErrorFit:
                       "std error, the value is arbitrary): use an input that excites them or "
                       "a model without them", stacklevel=3)
     if not converged:
+        best = "the best iterate" if ok and int(n_steps) > 0 else "the start"
         warnings.warn(f"output_error(): not converged ({code} after {int(n_steps)} steps); the "
-                      f"result is {'the best iterate' if ok else 'the start'}: raise max_steps or "
+                      f"result is {best}: raise max_steps or "
                       "start from a better model (see OutputErrorFit.converged)", stacklevel=3)
+    if int(new.status) & Status.UNSTABLE:  # "converged" alone read as a usable model
+        warnings.warn("output_error(): the fitted model is unstable (a root of A(s) with Re >= "
+                      "0; see its status): a short or poorly excited window can fit one; check "
+                      "the window and the start, or validate it before use", stacklevel=3)
     return OutputErrorFit(new, original, x0, names, theta, np.sqrt(np.diag(cov))[:p_theta],
                           cov[:p_theta, :p_theta], sigma2, E0, E1, code, int(n_steps),
                           bool(converged), bool(was_unstable))

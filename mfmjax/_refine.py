@@ -224,6 +224,12 @@ def refine(
     if isinstance(start, SearchResult):  # refine the best `top` candidates, keep the best
         if len(start) == 0:
             raise ValueError("refine(): the search result is empty")
+        if start.identify is not None:  # the model came back fitted on the validation data too
+            warnings.warn(f"refine(): the search identified on the windows "
+                          f"{list(start.identify)}, but refine identifies on all of `signals` "
+                          "(its E on a validation window inside them is then no held-out "
+                          "score); give refine the identification data (signals.window(t0, "
+                          "t1)) to keep it apart", stacklevel=2)
         starts = [start.best(i) for i in range(min(top, len(start)))]
         span = max(_kernel_span(_box(signals, s, bounds), vary, s) for s in starts)
         runs = [refine(signals, s, score=score, vary=vary, bounds=bounds, validate=validate,
@@ -234,6 +240,7 @@ def refine(
     if not isinstance(start, Model) or start.mf is None:
         raise TypeError("refine(): start must be a Model from identify or a SearchResult")
     _b.start_layout("refine", start, signals)
+    _b.delays_note("refine", start, signals)
     if score not in ("E", "J"):
         raise ValueError(f"refine(): score must be 'E' or 'J' (got {score!r})")
     bad = sorted(set(vary) - set(SETTINGS))

@@ -411,6 +411,7 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
     if not isinstance(signals, Signals):
         return _srivc_batch(signals, model, max_iter, tol)
     max_iter, tol = _checked(signals, model, max_iter, tol)
+    _b.delays_note("srivc", model, signals)
     traced = _b.is_traced(signals.y) or _b.is_traced(model.a) or _b.is_traced(max_iter)
     # padded to (n, largest m_k): each padded coefficient costs a step of the elimination in
     # every IV solve (p = 11 against 7 for n = 3, m = (1, 1): 8.6 against 6.1 ms per fit)

@@ -198,3 +198,22 @@ def test_transport_delay_tracks_simulator_experiment2():
     for end in (4250, 6500, 9500):  # last interval ends before the pull changes / the end
         est = transport_delay_estimate(d["y"], d["u"], end, guess=float(np.round(d["delay"][0])))
         assert abs(est["delay"] - d["delay"][end - 1]) <= 10.0
+
+
+def test_improved_mode_records_start_where_their_predictions_start():
+    """Improved mode adopts, where the winner's settings fit nothing on the newest window, the
+    model fitted one interval earlier: its record said sim_start = that window's end, one
+    interval before its first prediction (the table's bands and a zero-length "sim 3250-3250"
+    were wrong). Every record's sim_start is now the time of the first sample it predicts,
+    and ident_window keeps the window its coefficients were fitted on (end exclusive)."""
+    from mfmjax._demo import run_experiment
+
+    ident = run_experiment(1, 4000.0, mode="improved")["ident"]
+    s = ident.series()
+    t, num = np.asarray(s["t"]), np.asarray(s["model_number"])
+    early = [r for r in ident.models if r["ident_window"][1] < r["sim_start"]]  # the case above
+    predicted = [r for r in ident.models if np.any(num == r["model"])]
+    assert early and any(r in predicted for r in early)
+    for rec in predicted:
+        assert t[np.argmax(num == rec["model"])] == rec["sim_start"], rec
+        assert rec["sim_end"] is None or rec["sim_end"] > rec["sim_start"]

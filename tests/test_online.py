@@ -660,3 +660,21 @@ def test_cli_online_time_in_another_unit_points_to_the_interval(switching_csv, t
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "interval (250) must be a whole number" in err
     assert "set interval in --config in the time column's unit (a multiple of dt)" in err
+
+
+def test_config_refuses_an_h_too_wide_for_the_first_window_and_says_why_no_prediction():
+    """h = 600 with n_start = 2 intervals of 250 s was accepted and raised at the first
+    identification, at every retry (the state does not advance); refused now. Without the
+    history (or after a load) the reason for no prediction is not guessed."""
+    with pytest.raises(ValueError, match=r"OnlineConfig\(\): h \+ delay \(600\) leaves 0 valid "
+                                         r"samples of the first identification window \(n_start "
+                                         r"x interval = 500\)"):
+        _config(n_start=2, n_reident=8, T_obinit=400, h=(600.0,))
+    t, y, u, _ = switching_experiment()
+    quiet = OnlineIdentifier(_config(), keep_history=False)
+    quiet.update(t[:3 * S], y[:3 * S], u[:3 * S])
+    assert math.isnan(quiet.mse())
+    assert quiet.why_no_prediction().startswith("no prediction yet (why is not known")
+    kept = OnlineIdentifier(_config())
+    kept.update(t[:3 * S], y[:3 * S], u[:3 * S])
+    assert kept.why_no_prediction() == "no prediction yet: waiting: 3 of 8 intervals"

@@ -279,3 +279,34 @@ def test_undetermined_parameters_get_infinite_std_errors_and_a_warning():
     J = np.stack([(sim(v + e) - sim(v - e)) / 2e-6 for e in np.eye(4) * 1e-6], 1)
     ref = fit.sigma2 * np.linalg.inv(J.T @ J)[:2, :2]
     np.testing.assert_allclose(fit.covariance[:2, :2], ref, rtol=1e-5)
+
+
+def test_output_error_says_what_its_result_hides():
+    """An output-error audit: signals given a 0.5 s dead time of their own and a start built
+    with delays 0 fitted at the start's delays without a word (a = [0.77, 1.27] for [2, 3],
+    converged); a fit that came out unstable read "converged (...)" only; max_steps=0 called
+    the start "the best iterate". Each is said now (warnings, the summary)."""
+    import warnings as w
+
+    delayed = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]], delays=[0.5],
+                                      intersample=["zoh"])
+    rec = simulated_experiment(delayed, dt=0.05, n_samples=800, seed=2, noise_std=0.01)
+    sig = mfmjax.Signals(rec.y, rec.u, dt=0.05, intersample=["zoh"], delays=[0.5], offset=False)
+    start = Model.from_coefficients([2.2, 3.3, 1.0], [[1.1]], intersample=["zoh"])
+    with pytest.warns(UserWarning, match=r"output_error\(\): the start model's delays \[0.0\] "
+                                         r"are used, not the signals' own \[0.5\]"):
+        mfmjax.output_error(sig, start)
+    with w.catch_warnings():
+        w.simplefilter("error")  # the start given the record's delays: nothing to say
+        fit = mfmjax.output_error(sig, Model.from_coefficients(
+            [2.2, 3.3, 1.0], [[1.1]], delays=[0.5], intersample=["zoh"]))
+    np.testing.assert_allclose(fit.theta, [2.0, 3.0, 1.0], rtol=0.05)
+    with pytest.warns(UserWarning, match="the result is the start"):
+        mfmjax.output_error(sig, Model.from_coefficients([2.2, 3.3, 1.0], [[1.1]], delays=[0.5],
+                                                         intersample=["zoh"]), max_steps=0)
+    # a 1 s window (20 samples): a_1 = -2.11, status unstable, and the fit read converged
+    with pytest.warns(UserWarning, match=r"output_error\(\): the fitted model is unstable"):
+        short = mfmjax.output_error(sig, Model.from_coefficients(
+            [2.2, 3.3, 1.0], [[1.1]], delays=[0.5], intersample=["zoh"]), window=(5.0, 6.0))
+    assert int(short.model.status) & mfmjax.Status.UNSTABLE
+    assert "UNSTABLE: the fitted A(s) has a root with Re >= 0" in short.summary()

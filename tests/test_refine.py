@@ -18,7 +18,7 @@ import reference as R
 from jaxlog import compiles
 
 import mfmjax
-from mfmjax import ModulatingFunction, Signals, Structure
+from mfmjax import Model, ModulatingFunction, Signals, Structure
 from mfmjax.datasets import paper_table3_model1, simulated_experiment
 
 ST = Structure(2, (0, 0))
@@ -278,3 +278,18 @@ def test_bad_windows_get_the_search_errors(noisy):
             call(validate=(0.0, 5000.0))
         with pytest.raises(ValueError, match="observer_window must fit"):
             call(validate=(500.0, 1000.0), observer_window=900.0)
+
+
+def test_refine_of_a_windowed_search_says_it_identifies_on_all_data():
+    """A search with identify= windows, refined: refine re-identified on all of the signals,
+    validation window included (a = [2.0475, 3.0643] against the candidate's [2.0096, 2.9983])
+    without a word, so its E there was no held-out score; it warns now."""
+    sig = simulated_experiment(Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]],
+                                                       intersample=["zoh"]),
+                               dt=0.05, n_samples=1200, seed=2, noise_std=0.01)
+    sr = mfmjax.search(sig, n=(2,), m=[(0,)], N=(3,), M=(3,), h=(1.7, 2.6),
+                       identify=(0.0, 30.0), validate=(30.0, 59.95))
+    assert sr.identify == ((0.0, 30.0),)
+    with pytest.warns(UserWarning, match=r"refine\(\): the search identified on the windows "
+                                         r"\[\(0.0, 30.0\)\], but refine identifies on all"):
+        mfmjax.refine(sig, sr, top=1, vary=("h",), validate=(30.0, 59.95), max_steps=3)

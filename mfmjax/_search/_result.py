@@ -38,6 +38,7 @@ class SearchResult(eqx.Module):
     input_names: tuple[str, ...] = eqx.field(static=True)
     compile_s: float = eqx.field(static=True)
     run_s: float = eqx.field(static=True)
+    identify: tuple | None = eqx.field(static=True, default=None)  # `search`'s identify= windows
 
     def __len__(self) -> int:
         return int(self.rank.shape[0])

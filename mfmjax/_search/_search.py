@@ -8,6 +8,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from .._boundary import user_stacklevel
+from .._pytree import replace_fields
 from .._signals import Signals, dependent_candidates
 from .._status import Status, describe
 from ._engine import run_plan
@@ -90,6 +91,9 @@ def search(
     if score == "J" and signals.offset:
         _level_note(np.asarray(signals.y))
     res = run_plan(plan, signals, progress, once=True)
+    if identify is not None:  # `refine` of this result says that it re-identifies on all data
+        wins = [identify] if np.isscalar(identify[0]) else list(identify)
+        res = replace_fields(res, identify=tuple((float(a), float(b)) for a, b in wins))
     _doubtful_best(res, delays)
     if not np.any(res.columns["status"] & Status.ILL_CONDITIONED):  # `collect` checked them
         return res
