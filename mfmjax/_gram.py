@@ -77,18 +77,21 @@ TRACED_DELAYS = ("pass delay_max=... (records stacked for jax.vmap carry their d
 
 def static_span(signals: Signals, mf: ModulatingFunction, delay_max: float | None) -> float:
     """Largest tau + h, fixing the static kernel length."""
-    if mf.h_max is None:
-        raise ValueError(
-            "identify(): h is traced (jit/vmap/grad) but no static bound is known; "
-            "pass ModulatingFunction(..., h_max=...)"
-        )
+    h_max = mf.h_max
+    if h_max is None:  # a model's own mf (`as_values`) carries no bound: its concrete h is one
+        if isinstance(mf.h, jax.core.Tracer):
+            raise ValueError(
+                "identify(): h is traced (jit/vmap/grad) but no static bound is known; "
+                "pass ModulatingFunction(..., h_max=...)"
+            )
+        h_max = float(np.max(np.asarray(mf.h)))
     if delay_max is None:
         if isinstance(signals.delays, jax.core.Tracer):
             raise ValueError(
                 f"identify(): delays are traced but no static bound is known; {TRACED_DELAYS}"
             )
         delay_max = float(np.max(np.asarray(signals.delays), initial=0.0))
-    return mf.h_max + delay_max
+    return h_max + delay_max
 
 
 def compiled_length(signals: Signals, mf: ModulatingFunction, delay_max: float | None = None) -> int:

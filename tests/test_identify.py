@@ -174,6 +174,12 @@ def test_no_recompile_second_call():
     before = identify_core._cached._cache_size()
     mfmjax.identify(sig, st, ModulatingFunction(4, 5, 1.9, h_max=2.0))
     assert identify_core._cached._cache_size() == before
+    # a model's own settings identify again (they carry no static bound: "h is traced ... pass
+    # h_max" was raised for this concrete h), in the same program, to the same model
+    model = mfmjax.identify(sig, st, ModulatingFunction(4, 5, 2.0))
+    again = mfmjax.identify(sig, st, model.mf)
+    np.testing.assert_array_equal(np.asarray(again.a), np.asarray(model.a))
+    assert identify_core._cached._cache_size() == before
 
 
 def test_grad_in_h_equals_finite_differences():
