@@ -742,7 +742,6 @@ def _no_candidate(config: OnlineConfig, results: list) -> str:
     return text + f" (the best by E: status ok, a pole of damping ratio {zeta:.3g})"
 
 
-
 def _improved_choice(state: OnlineState, j: int, w: int, model: dict | None):
     """Improved mode's identification at the end of interval j on the last `w` intervals.
 
@@ -1003,7 +1002,8 @@ def _close_interval(state: OnlineState, j: int):
             t_next = float(state.t0) + (j + 1) * S * c.dt
             factor = 1.0 - (c.min_improvement if "hold" in c.improvements else 0.0)
             E_cur_ok = E_cur is not None and math.isfinite(E_cur)
-            event.update(E_current=E_cur if E_cur_ok else None, E_reident=E_best, E_on=on)
+            event.update(E_current=E_cur if E_cur_ok else None, E_reident=E_best,
+                         E_on=on if best is not None else None)  # (else `on` is the rejection)
             if best is None:
                 event["action"] = on  # the rejection, with the reason (`_improved_choice`)
             elif not has:
