@@ -511,15 +511,19 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
     R, sel0 = len(records), sels[0]
     if len(sel0.refit) == 0:
         raise ValueError("estimate(): the search grid has no feasible candidate; widen N, M or h")
-    blocks = " and ".join(f"[{w[0]:g}, {w[1]:g}]" for _, w in sel0.folds)
+    blocks = " and ".join(f"[{w[0]:.15g}, {w[1]:.15g}]" for _, w in sel0.folds)
+    several = len(sel0.estimation) > 1  # the share is of the last window, and no SRIVC runs
     texts = []
     for sel in sels:
         j = int(rank_by(sel.refit, "bic")[0])
         by_bic = (int(sel.refit.columns["n"][j]), [int(v) for v in sel.refit.columns["m"][j]])
-        texts.append(f"mean hold-out E over {blocks} ({holdout:.0%} of the estimation data "
-                     f"each, fitted on the rest), SRIVC structures within "
-                     f"{HOLDOUT_TIE:.0%} of the best decided by their BIC over all estimation "
-                     f"data; the MFM search's BIC on the estimation data would pick "
+        texts.append(f"mean hold-out E over {blocks} ({holdout:.0%} of the "
+                     + ("last estimation window, " if several else "estimation data each, ")
+                     + "fitted on the rest)"
+                     + ("" if several else
+                        f", SRIVC structures within {HOLDOUT_TIE:.0%} of the best decided by "
+                        "their BIC over all estimation data")
+                     + f"; the MFM search's BIC on the estimation data would pick "
                      f"n={by_bic[0]} m={by_bic[1]}")
     if len(sel0.estimation) > 1:
         # several experiments: the stages after MFM simulate one record; keep MFM

@@ -10,12 +10,14 @@ data share one program.
 
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import jax
 import numpy as np
 
 from ._batch import overlapped
+from ._boundary import user_stacklevel
 from ._observers import MIN_WINDOW
 from ._pytree import replace_fields
 from ._quadrature import window_bucket
@@ -65,6 +67,10 @@ def holdout_folds(signals: Signals, estimation, holdout: float, folds: int = FOL
             (t(b - L), t(b - 1)))]
     if folds == 2 and len(segs) == 1:
         out.insert(0, (((t(a + L), t(b - 1)),), (t(a), t(a + L - 1))))
+    elif folds == 2:  # it became one fold without a word
+        warnings.warn("estimate(): folds=2 needs one estimation window (each fit part must stay "
+                      "one contiguous record); with several windows one fold is used, the end "
+                      "of the last window held out", stacklevel=user_stacklevel())
     return tuple(out), tuple((t(s), t(e - 1)) for s, e in segs)
 
 

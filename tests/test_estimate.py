@@ -803,3 +803,15 @@ def test_estimate_residual_tests_read_the_estimation_window_only():
     assert not any("correlated" in str(w.message) for w in caught), [str(w.message)
                                                                       for w in caught]
     assert not any("residuals" in n for n in est.notes), est.notes
+
+
+def test_estimate_on_several_windows_says_its_fold_and_selection_as_they_are():
+    """Two experiments end to end: folds=2 became one fold without a word, and the selection
+    text said "(33% of the estimation data each ...), SRIVC structures ... decided by their
+    BIC" where the block is a third of the last window and no SRIVC runs."""
+    a, b = _realisations(20.0, (3, 4))
+    joined, windows = mfmjax.Signals.concatenate([a, b])
+    with pytest.warns(UserWarning, match=r"estimate\(\): folds=2 needs one estimation window"):
+        est = mfmjax.estimate(joined, identify=list(windows), folds=2, **SMALL)
+    assert "33% of the last estimation window, fitted on the rest)" in est.selection
+    assert "SRIVC" not in est.selection and est.method == "mfm"
