@@ -296,6 +296,11 @@ def start_layout(fn: str, model, signals) -> None:
                          f"Signals(..., offset={model.has_offset})")
 
 
+def window_list(identify) -> list:
+    """`identify=` as a list of (t0, t1) windows: one window, or a list of them."""
+    return [identify] if np.isscalar(identify[0]) else list(identify)
+
+
 def delays_note(fn: str, model, signals) -> None:
     """Warn (public entry points only) where the start's delays, which the fit uses, differ
     from delays the signals were given (nonzero): a start built with delays 0 fitted a wrong
@@ -376,7 +381,7 @@ def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_wi
                 not identify:
             raise TypeError(f"{fn}(): identify must be a window (t0, t1) or a list of windows, "
                             f"got {_show(identify)}")
-        wins = [identify] if np.isscalar(identify[0]) else list(identify)
+        wins = window_list(identify)
         for w in wins:
             window(fn, "identify", w)
         ordered = sorted((float(a), float(b)) for a, b in wins)

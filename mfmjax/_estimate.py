@@ -231,9 +231,10 @@ def estimate(
     n_top = max(grid_values(n, "n"))
     if identify is None:
         checked = residual_notes(records, outs, n_top)
-    elif np.isscalar(identify[0]):  # on the estimation window only (they read the data the
-        # user kept back, and across a concatenated record's junctions)
-        checked = residual_notes([rec.window(*identify) for rec in records], outs, n_top)
+    elif len(_b.window_list(identify)) == 1:  # on the estimation window only (on the record
+        # they read the data the user kept back, and across a concatenated record's junctions)
+        window = _b.window_list(identify)[0]
+        checked = residual_notes([rec.window(*window) for rec in records], outs, n_top)
     else:  # several windows (experiments laid end to end?): no residual test across them
         checked = [(("residual tests not run: several estimation windows (run residuals("
                      "model, record.window(t0, t1)) on each)",), False, False)] * len(outs)

@@ -803,6 +803,10 @@ def test_estimate_residual_tests_read_the_estimation_window_only():
     assert not any("correlated" in str(w.message) for w in caught), [str(w.message)
                                                                       for w in caught]
     assert not any("residuals" in n for n in est.notes), est.notes
+    # one window given as a list of one window: the same path, the same estimate
+    listed = mfmjax.estimate(sig, identify=[(0.0, (half - 1) * DT)], **SMALL)
+    np.testing.assert_array_equal(np.asarray(listed.model.a), np.asarray(est.model.a))
+    assert listed.notes == est.notes
 
 
 def test_estimate_on_several_windows_says_its_fold_and_selection_as_they_are():

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _batch
+from .._boundary import window_list
 from .._gram import MIN_VALID
 from .._modulating import MAX_DEGREE
 from .._observers import validation_window
@@ -133,7 +134,7 @@ def identification_segments(signals: Signals, identify, fn: str = "search") -> t
     window or a list of them (e.g. the experiments of `Signals.concatenate`); default the record."""
     if identify is None:
         return ((0, signals.n_samples),)
-    windows = [identify] if np.isscalar(identify[0]) else list(identify)
+    windows = window_list(identify)
     T, dt, t0 = signals.n_samples, signals.dt, signals.t0
     out = []
     for w in windows:

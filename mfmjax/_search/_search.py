@@ -7,7 +7,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from .._boundary import user_stacklevel
+from .._boundary import user_stacklevel, window_list
 from .._pytree import replace_fields
 from .._signals import Signals, dependent_candidates
 from .._status import Status, describe
@@ -81,8 +81,7 @@ def search(
                          "0/0; rank by 'E', or validate on a window where the output moves")
     if simulate:
         _history_note(signals, delays, v_start)
-        if validate is None and identify is not None and not np.isscalar(identify[0]) \
-                and len(identify) > 1:
+        if validate is None and identify is not None and len(window_list(identify)) > 1:
             warnings.warn("search(): E and fit are measured over the whole record, across the "
                           "gaps between the identify windows: for experiments laid end to end "
                           "(Signals.concatenate) a simulation must stay inside one of them "
@@ -92,8 +91,8 @@ def search(
         _level_note(np.asarray(signals.y))
     res = run_plan(plan, signals, progress, once=True)
     if identify is not None:  # `refine` of this result says that it re-identifies on all data
-        wins = [identify] if np.isscalar(identify[0]) else list(identify)
-        res = replace_fields(res, identify=tuple((float(a), float(b)) for a, b in wins))
+        res = replace_fields(res, identify=tuple((float(a), float(b))
+                                                 for a, b in window_list(identify)))
     _doubtful_best(res, delays)
     if not np.any(res.columns["status"] & Status.ILL_CONDITIONED):  # `collect` checked them
         return res
