@@ -26,7 +26,6 @@ from ._estimate import estimate_outputs as estimate_outputs  # noqa: E402
 from ._gram import gram as gram  # noqa: E402
 from ._gram import modulated_signals as modulated_signals  # noqa: E402
 from ._identify import identify as identify  # noqa: E402
-from ._jit import jit as _compiled  # noqa: E402
 from ._model import Model as Model  # noqa: E402
 from ._modulating import ModulatingFunction as ModulatingFunction  # noqa: E402
 from ._modulating import phi as phi  # noqa: E402
@@ -60,7 +59,7 @@ from ._search import search as search  # noqa: E402
 from ._signals import Signals as Signals  # noqa: E402
 from ._simulate import simulate as simulate  # noqa: E402
 from ._solve import closed_form as closed_form  # noqa: E402
-from ._solve import constrained_solve as _constrained_solve  # noqa: E402
+from ._solve import public_constrained_solve as constrained_solve  # noqa: E402
 from ._srivc import SrivcFit as SrivcFit  # noqa: E402
 from ._srivc import srivc as srivc  # noqa: E402
 from ._statespace import StateSpace as StateSpace  # noqa: E402
@@ -69,10 +68,6 @@ from ._statespace import to_control as to_control  # noqa: E402
 from ._statespace import to_scipy as to_scipy  # noqa: E402
 from ._status import Status as Status  # noqa: E402
 from ._structure import Structure as Structure  # noqa: E402
-
-# the public solve is one compiled program: called eagerly, its elimination and eigenvalue loops
-# were traced and compiled again at every call (320 ms each, against well under 1 ms compiled)
-constrained_solve = _compiled(_constrained_solve)
 
 __version__ = "0.1.0"
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from . import _boundary as _b
 from ._jit import jit
-from ._model import Model, growing_poles
+from ._model import Model, finite_or_none, growing_poles
 from ._observers import fit_percent, observe, validation_window
 from ._output_error import free_parameters, order_parameters, with_parameters
 from ._signals import Signals
@@ -67,7 +67,7 @@ class Comparison(eqx.Module):
 
     def summary(self) -> str:
         return (f"compare {self.output_name} on {self.t[0]:g} .. {self.t[-1]:g} "
-                f"({self.t.size} samples): fit {self.fit:.2f} %")
+                f"({self.t.size} samples): {_fit_text(self.fit)}")
 
     def plot(self, path) -> None:
         """Write measured vs simulated output with the fit % as a PNG to `path`."""
@@ -103,8 +103,20 @@ def compare(model: Model, signals: Signals, window=None, *, observer_window=None
     `compare` (`fit_percent`); the state at the window start from the observer (eq. 14) on the
     first `observer_window` time units (default: the whole window). **Returns:** `Comparison`."""
     t, y, y_sim, _ = _simulated(model, signals, window, observer_window, "compare")
-    fit = float(fit_percent(y, y_sim)) if np.ptp(y) > 0 else math.nan
-    return Comparison(t, y, y_sim, fit, signals.output_name)
+    return Comparison(t, y, y_sim, _window_fit("compare", y, y_sim), signals.output_name)
+
+
+def _window_fit(fn: str, y, y_sim) -> float:
+    """fit % on the window; NaN where the output does not move there (undefined), said."""
+    if np.ptp(y) > 0:
+        return float(fit_percent(y, y_sim))
+    warnings.warn(f"{fn}(): the output is constant on the window, so the fit % is undefined "
+                  "(NaN); compare on a window where it moves", stacklevel=_b.user_stacklevel())
+    return math.nan
+
+
+def _fit_text(fit: float) -> str:
+    return f"fit {fit:.2f} %" if math.isfinite(fit) else "fit undefined (constant output)"
 
 
 # -- residual analysis -------------------------------------------------------------------------
@@ -144,7 +156,7 @@ class Residuals(eqx.Module):
                  "reproduces the data)" if flat
                  else "PASS" if self.white else "FAIL")
         out = [f"residual analysis of {self.output_name}: N = {N}, lags 0..{L}, 99 % level, "
-               f"fit {self.fit:.2f} %, mean(e) = {np.mean(self.e):.4g}, "
+               f"{_fit_text(self.fit)}, mean(e) = {np.mean(self.e):.4g}, "
                f"std(e) = {np.std(self.e):.4g}",
                f"whiteness: Q = {self.whiteness_stat:.2f} vs chi2_0.99({L}) = "
                f"{self.whiteness_critical:.2f}: {white} "
@@ -162,18 +174,20 @@ class Residuals(eqx.Module):
         return "\n".join(out)
 
     def to_dict(self) -> dict:
-        """JSON-ready verdicts and statistics (no sample arrays)."""
+        """JSON-ready verdicts and statistics (no sample arrays; None where a statistic is
+        undefined, e.g. the tests of a constant input: JSON has no NaN)."""
+        num = finite_or_none
         return {
             "N": int(self.e.size), "lags": int(self.lags.size - 1), "level": LEVEL,
-            "fit": self.fit, "mean_e": float(np.mean(self.e)), "std_e": float(np.std(self.e)),
+            "fit": num(self.fit), "mean_e": num(np.mean(self.e)), "std_e": num(np.std(self.e)),
             "whiteness": {"pass": None if self.white is None else bool(self.white),
-                          "Q": float(self.whiteness_stat),
-                          "critical": float(self.whiteness_critical),
-                          "bound": float(self.auto_bound)},
+                          "Q": num(self.whiteness_stat),
+                          "critical": num(self.whiteness_critical),
+                          "bound": num(self.auto_bound)},
             "independence": {name: {"pass": self.independent[k],
-                                    "Q": float(self.independence_stat[k]),
-                                    "critical": float(self.independence_critical[k]),
-                                    "bound": float(self.cross_bound[k])}
+                                    "Q": num(self.independence_stat[k]),
+                                    "critical": num(self.independence_critical[k]),
+                                    "bound": num(self.cross_bound[k])}
                              for k, name in enumerate(self.input_names)},
         }
 
@@ -275,7 +289,7 @@ def residuals(model: Model, signals: Signals, window=None, *, observer_window=No
     u = np.asarray(signals.u)[k0 : k0 + N]
     e = y - y_sim
     stats = residual_tests(e, u, int(lags), y=y)
-    fit = float(fit_percent(y, y_sim)) if np.ptp(y) > 0 else math.nan
+    fit = _window_fit("residuals", y, y_sim)
     return Residuals(t=t, e=e, fit=fit, output_name=signals.output_name,
                      input_names=tuple(signals.input_names), **stats)
 

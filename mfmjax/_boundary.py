@@ -279,8 +279,21 @@ def swap_hint(fn: str, value) -> str:
     return f"; arguments swapped? the order is {fn}({', '.join(first)}, ...)"
 
 
+def model_delays(fn: str, model) -> None:
+    """A model's delays are dead times: finite and >= 0 (a model edited by hand, e.g. with
+    `eqx.tree_at`, can carry others: its simulation read future samples, status ok)."""
+    if is_traced(model.delays):
+        return
+    d = np.asarray(model.delays, dtype=np.float64)
+    if not np.all(np.isfinite(d) & (d >= 0)):
+        raise ValueError(f"{fn}(): model.delays must be finite and >= 0 (dead times), got "
+                         f"{d.tolist()}; a negative delay would read future inputs")
+
+
 def same_inputs(fn: str, model, signals) -> None:
-    """A model evaluated or refined on `signals` must have their number of inputs."""
+    """A model evaluated or refined on `signals` must have their number of inputs and dead
+    times for delays (`model_delays`)."""
+    model_delays(fn, model)
     if model.n_inputs != signals.n_inputs:
         raise ValueError(f"{fn}(): the model has {model.n_inputs} inputs but the signals have "
                          f"{signals.n_inputs}; pass the inputs the model was identified with")
@@ -323,18 +336,19 @@ def _eta(fn: str, eta) -> None:
         array(fn, "eta", eta, ndim=1, fix="give a finite constraint vector")
 
 
-def check_identify(signals, structure, mf, eta=None, delay_max=None) -> None:
-    """identify(): x64, argument kinds, eta finite, h covering at least 2 samples."""
+def check_identify(signals, structure, mf, eta=None, delay_max=None,
+                   fn: str = "identify") -> None:
+    """identify() (or `fn`): x64, argument kinds, eta finite, h covering at least 2 samples."""
     from ._modulating import ModulatingFunction
 
-    require_x64("identify")
-    _signals_arg("identify", signals)
+    require_x64(fn)
+    _signals_arg(fn, signals)
     if not isinstance(mf, ModulatingFunction):
-        raise TypeError(f"identify(): mf must be a ModulatingFunction, got {type(mf).__name__}")
-    min_support("identify", mf.h, signals.host_dt, "mf.h")
-    _eta("identify", eta)
+        raise TypeError(f"{fn}(): mf must be a ModulatingFunction, got {type(mf).__name__}")
+    min_support(fn, mf.h, signals.host_dt, "mf.h")
+    _eta(fn, eta)
     if delay_max is not None:
-        number("identify", "delay_max", delay_max, lo=0)
+        number(fn, "delay_max", delay_max, lo=0)
 
 
 def _grid_numbers(fn, name, value, **kw):
@@ -486,10 +500,15 @@ def check_output_error(signals, *, window_, max_steps, rtol, atol) -> None:
 
 def user_stacklevel() -> int:
     """`warnings.warn`'s stacklevel, from the function that calls this, of the first frame
-    outside mfmjax: a warning points at the user's line through any chain of library calls."""
-    root = os.path.dirname(os.path.abspath(__file__))
+    outside mfmjax (and equinox): a warning points at the user's line through any chain of
+    library calls."""
+    import equinox
+
+    # equinox's frames too: a method of a Module is called through its bound-method wrapper
+    roots = tuple(os.path.dirname(os.path.abspath(m.__file__)) for m in (sys.modules[__package__],
+                                                                       equinox))
     frame, level = sys._getframe(1), 1
-    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(root):
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(roots):
         frame, level = frame.f_back, level + 1
     return level
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import os
 import platform
+import re
 
 import jax
 
@@ -46,15 +47,26 @@ def cache_dir(path: str | os.PathLike | None = None) -> str:
     return os.path.abspath(os.path.expanduser(directory or default_cache_dir()))
 
 
+ENTRY = re.compile(r"-[0-9a-f]{64}-cache$")  # JAX's entries and `mfmjax-exe-<key>-cache`
+
+
 def _prune(path: str, max_size_bytes: int) -> None:
-    """Delete the oldest cache entries until the directory holds at most `max_size_bytes`."""
+    """Delete the oldest cache entries (`ENTRY`: other files in the folder are the user's)
+    until the directory holds at most `max_size_bytes`. Another process may prune the same
+    folder at the same time: a file gone meanwhile is skipped (it raised before)."""
     entries = []
     for entry in os.scandir(path):
-        if entry.is_file() and entry.name.endswith("-cache"):
+        if not ENTRY.search(entry.name):
+            continue
+        atime = os.path.join(path, entry.name[: -len("-cache")] + "-atime")
+        try:
+            if not entry.is_file():
+                continue
             st = entry.stat()
-            atime = os.path.join(path, entry.name[: -len("-cache")] + "-atime")
             used = max(st.st_mtime, os.path.getmtime(atime) if os.path.exists(atime) else 0.0)
-            entries.append((used, st.st_size, entry.path, atime))
+        except OSError:
+            continue
+        entries.append((used, st.st_size, entry.path, atime))
     total = sum(e[1] for e in entries)
     for _, size, file, atime in sorted(entries):
         if total <= max_size_bytes:
@@ -91,9 +103,10 @@ def enable_compile_cache(
       tracing or lowering them (default True; False: JAX's cache alone).
 
     **Returns:** the directory used, or None when `MFMJAX_NO_COMPILE_CACHE=1` is set (then
-    nothing is changed).
+    the cache is off, JAX's own too: `disable_compile_cache`).
     """
     if os.environ.get(_OPT_OUT, "").strip().lower() in ("1", "true", "yes", "on"):
+        disable_compile_cache()
         return None
     if isinstance(max_size_bytes, bool) or not (isinstance(max_size_bytes, int)
                                                 and max_size_bytes > 0):
@@ -126,3 +139,11 @@ def enable_compile_cache(
         cc.reset_cache()  # JAX opens the directory once per process; reopen at the new one
     _executables.enable(directory if executables else None)
     return directory
+
+
+def disable_compile_cache() -> None:
+    """No persistent compilation cache in this process: JAX's off (it turned itself on from
+    `$JAX_COMPILATION_CACHE_DIR`, so `--no-compile-cache` still wrote entries there) and no
+    stored executables. `MFMJAX_NO_COMPILE_CACHE=1` and the CLI's `--no-compile-cache`."""
+    jax.config.update("jax_enable_compilation_cache", False)
+    _executables.enable(None)

@@ -1246,13 +1246,16 @@ def main(argv=None) -> int:
             val = getattr(args, name, None)
             if isinstance(val, float) and abs(val) < 2**53 and val == int(val):
                 setattr(args, name, int(val))
-        if not no_cache:
-            from ._cache import enable_compile_cache
+        from ._cache import disable_compile_cache, enable_compile_cache
 
+        if no_cache:
+            disable_compile_cache()
+        else:
             try:
                 enable_compile_cache()
-            except ValueError as err:  # an unwritable cache folder must not stop the command
-                print(f"warning: {err}", file=sys.stderr)
+            except (ValueError, OSError) as err:  # an unwritable cache folder (or another
+                # process pruning it) must not stop the command
+                print(f"warning: {_first_line(err)}", file=sys.stderr)
         with warnings.catch_warnings():
             warnings.showwarning = _one_line_warning
             # its own note says which of --delays/--intersample the model's replace

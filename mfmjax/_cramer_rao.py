@@ -46,6 +46,12 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
     u = edge_padded(u, max(record_bucket(u.shape[0]), bound) - u.shape[0])
     J = np.asarray(_sensitivities(base, jax.device_put(u), v, np.float64(dt), bound))[:length]
     J = J[:, np.concatenate([live, theta.size + np.arange(model.n)])]
+    with np.errstate(over="ignore"):
+        big = not (np.all(np.isfinite(J)) and np.all(np.isfinite(np.linalg.norm(J, axis=0))))
+    if big:  # J^T J overflowed: every bound came back inf, read as "undetermined"
+        raise ValueError(f"cramer_rao(): the sensitivities overflow float64 (|dy/dtheta| up "
+                         f"to {np.nanmax(np.abs(J)):.3g}): u or x0 is too large for this model; "
+                         "scale the experiment (the bounds scale with sigma / |u|)")
     std = np.sqrt(np.diag(gauss_newton_covariance(J, sigma**2)))[: theta0.size]
     rate = float(np.max(growing_poles(model.a).real, initial=0.0))
     if not np.all(np.isfinite(std)) and rate > 0:

@@ -238,12 +238,15 @@ def _load(path):
         if lapack:
             _initialize_lapack()
         compiled = _serialize.deserialize_and_load(*serialized)
-        os.utime(path)  # recently used: `_prune` deletes the oldest first
     except FileNotFoundError:
         return None
     except Exception:  # noqa: BLE001 - a damaged or foreign file: delete it, compile again
         _remove(path)
         return None
+    try:  # recently used: `_prune` deletes the oldest first
+        os.utime(path)
+    except OSError:  # a read-only folder or another user's file: still a good program (it
+        pass  # was deleted as damaged, and every program compiled again)
     stats["loaded"] += 1
     return compiled
 

@@ -114,21 +114,50 @@ def modulated_signals(
     padding. Called outside jit/vmap/grad it runs one compiled program per structure, record
     length, sampling interval, rules, offset term and kernel length: a new h, N, M, delay,
     t0 or name reuses it."""
-    require_x64("modulated_signals")
+    from . import _boundary as _b
+    from ._identify import _check
+
+    fn = "modulated_signals"
+    _b.check_identify(signals, structure, mf, None, delay_max, fn)
+    structure, _ = _check(signals, structure, mf, None, fn)  # inputs, N, M >= n, h in the record
     length = compiled_length(signals, mf, delay_max) if length is None else operator.index(length)
     if end is not None and not isinstance(end, jax.core.Tracer):
-        end = np.asarray(end, dtype=np.int32)
+        end = np.int32(_b.integer(fn, "end", end, lo=1, hi=signals.n_samples,
+                                  fix="the sample index the Gram integral ends before"))
     return _modulated_program(Signals.unlabelled(signals), structure, as_values(mf), length, end)
 
 
+def signal_levels(signals: Signals):
+    r"""(K + 1,) the constants removed from the output and from each input before they are
+    modulated when the model has an offset term (their means; no gradient, any constant is
+    exact): with the offset column in the model, $y = y' + c_y$, $u_k = u_k' + c_k$ only move
+    the offset ($	heta_{off}' = 	heta_{off} - c_y a_0 + \sum_k c_k b_{k0}$, `level_vector`),
+    and the Gram of the centred columns keeps the signals' variation: with a level of 1e4
+    its $y_0$, $u_{k0}$ and offset columns were collinear to 1e-8 and the solve returned
+    coefficients 1e-4 off (8e-3 at n = 3; a level of 1e6: 100 % off), status ok."""
+    return jax.lax.stop_gradient(jnp.concatenate(
+        [jnp.mean(signals.y)[None], jnp.mean(signals.u, axis=0)]))
+
+
+def level_vector(levels, b_starts, p: int):
+    r"""(p,) $l$ with $	heta_{off}' = 	heta_{off} + l^T	heta$ for the centred columns
+    (`signal_levels`): $-c_y$ at $a_0$, $+c_k$ at $b_{k0}$ (`b_starts`, static), 0 elsewhere
+    (the offset last)."""
+    return jnp.zeros(p).at[0].set(-levels[0]).at[np.asarray(b_starts, int)].set(levels[1:])
+
+
 def modulated_columns(signals: Signals, structure: Structure, mf: ModulatingFunction,
-                      length: int, end=None) -> ModulatedSignals:
-    """`modulated_signals` inside a program, at the static kernel `length`."""
+                      length: int, end=None, levels=None) -> ModulatedSignals:
+    """`modulated_signals` inside a program, at the static kernel `length`; `levels`
+    (`signal_levels`): the columns of the centred signals (the dead-column bounds and the
+    excitation test still of the signals themselves)."""
     dt = signals.dt
     T = signals.n_samples
     K = signals.n_inputs
     data = [signals.u[:, k] for k in range(K)] + [jnp.ones(T, dtype=jnp.float64)]
     delays = [signals.delays[k] for k in range(K)] + [jnp.asarray(0.0)]
+    shift = [0.0] * (K + 2) if levels is None else [levels[k + 1] for k in range(K)] + [
+        0.0, levels[0]]  # indexed by src: inputs, the constant (K), the output (-1)
     cols, bounds, first = [], [], jnp.asarray(0, dtype=jnp.int32)
     for (src, rule, sign), orders in source_groups(signals, structure):
         x = signals.y if src == -1 else data[src]
@@ -137,7 +166,7 @@ def modulated_columns(signals: Signals, structure: Structure, mf: ModulatingFunc
         W = profile_weights(lambda r: jnp.stack([phi_scaled(r, mf.N, mf.M, i) for i in orders]),
                             mf.h, dt, rule, tau, length)
         W = W * (sign * mf.h ** (-jnp.asarray(orders, dtype=jnp.float64)))[:, None]
-        cols.append(modulate(x, W).T)
+        cols.append(modulate(x - shift[src], W).T)
         bounds.append(jnp.sum(jnp.abs(W), axis=1) * jnp.max(jnp.abs(x)))
         first = jnp.maximum(first, support_samples(tau + mf.h, dt))
     q = gregory_weights(T, first, dt, end)
@@ -236,7 +265,7 @@ _gram_program = jit(gram_matrix)
 
 def settings_valid(signals: Signals, n: int, mf: ModulatingFunction, first, end, n_params: int):
     """Inside a program: the traced settings are in the range the eager checks enforce (N, M
-    >= n and N + M <= `MAX_DEGREE`, h at least 2 samples, delays >= 0, all finite, and at
+    >= n and N + M <= `MAX_DEGREE`, h at least 2 samples, delays >= 0, dt > 0, all finite, and at
     least max(`MIN_VALID`, 2 p) valid samples after the kernels' support `first`). Concrete
     settings outside it are refused at the boundary; traced ones gave a wrong model with
     status ok (N = 2 < n = 3: a = [12.4, 12.5, 4.8, 1])."""
@@ -244,13 +273,16 @@ def settings_valid(signals: Signals, n: int, mf: ModulatingFunction, first, end,
 
     N, M, h = (jnp.asarray(v, jnp.float64) for v in (mf.N, mf.M, mf.h))
     d = jnp.asarray(signals.delays, jnp.float64)
+    dt = jnp.asarray(signals.dt, jnp.float64)
     T = signals.n_samples if end is None else end
     return (jnp.isfinite(N) & jnp.isfinite(M) & jnp.isfinite(h) & jnp.all(jnp.isfinite(d))
+            & jnp.isfinite(dt) & (dt > 0)
             & (N >= n) & (M >= n) & (N + M <= MAX_DEGREE) & (h >= 2 * signals.dt * (1 - 1e-12))
             & jnp.all(d >= 0) & (T - first >= max(MIN_VALID, 2 * n_params)))
 
 
-def check_record_length(signals: Signals, mf: ModulatingFunction, n_params: int):
+def check_record_length(signals: Signals, mf: ModulatingFunction, n_params: int,
+                        fn: str = "identify"):
     """Boundary check: the record must hold h (+ delays) plus enough valid samples."""
     if isinstance(mf.h, jax.core.Tracer) or isinstance(signals.delays, jax.core.Tracer):
         return
@@ -259,7 +291,7 @@ def check_record_length(signals: Signals, mf: ModulatingFunction, n_params: int)
     need = max(MIN_VALID, 2 * n_params)
     if signals.n_samples - first < need:
         raise ValueError(
-            f"identify(): the record ({signals.duration:g} time units, {signals.n_samples} "
+            f"{fn}(): the record ({signals.duration:g} time units, {signals.n_samples} "
             f"samples) is too short for h={float(np.max(np.asarray(mf.h))):g} plus delays: it leaves "
             f"{max(signals.n_samples - first, 0)} valid samples, need {need}; "
             "use a smaller h or a longer record"

@@ -14,8 +14,10 @@ from ._gram import (
     compiled_length,
     feedthrough_corrections,
     gram_matrix,
+    level_vector,
     modulated_columns,
     settings_valid,
+    signal_levels,
     steady_input_columns,
 )
 from ._jit import jit
@@ -25,7 +27,7 @@ from ._modulating import ModulatingFunction, as_values
 from ._pytree import build, replace_fields
 from ._quadrature import edge_padded, record_bucket
 from ._signals import Signals, dependent_inputs
-from ._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
+from ._solve import DEAD_COLUMN_RTOL, centred_eta, constrained_solve, finish_solve, uncentred
 from ._status import Status, describe
 from ._structure import Structure
 
@@ -36,34 +38,35 @@ def _concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
-def _check(signals: Signals, structure: Structure, mf: ModulatingFunction, eta):
+def _check(signals: Signals, structure: Structure, mf: ModulatingFunction, eta,
+           fn: str = "identify"):
     if not isinstance(signals, Signals):
         from ._boundary import swap_hint
 
-        raise TypeError(f"identify(): signals must be a Signals, got {type(signals).__name__}"
+        raise TypeError(f"{fn}(): signals must be a Signals, got {type(signals).__name__}"
                         f"{swap_hint('identify', signals)}")
     if not isinstance(structure, Structure):
         raise TypeError(
-            f"identify(): structure must be a Structure, got {type(structure).__name__}"
+            f"{fn}(): structure must be a Structure, got {type(structure).__name__}"
         )
     if not isinstance(mf, ModulatingFunction):
-        raise TypeError(f"identify(): mf must be a ModulatingFunction, got {type(mf).__name__}")
-    structure = Structure.for_inputs(structure, signals.n_inputs)  # (a bound method of an
+        raise TypeError(f"{fn}(): mf must be a ModulatingFunction, got {type(mf).__name__}")
+    structure = Structure.for_inputs(structure, signals.n_inputs, fn)  # (a bound method of an
     # equinox Module is built anew at every access: about 30 us on this hot path)
     n = structure.n
     for name, val in (("N", mf.N), ("M", mf.M)):
         if _concrete(val) and float(np.min(np.asarray(val))) < n:
             raise ValueError(
-                f"identify(): {name} must be >= n (got {name}={_fmt(val)}, n={n}); "
+                f"{fn}(): {name} must be >= n (got {name}={_fmt(val)}, n={n}); "
                 f"phi^(i) must vanish at both ends for i < n"
             )
     p = structure.n_params + int(signals.offset)
-    check_record_length(signals, mf, p)
+    check_record_length(signals, mf, p, fn)
     eta = np.ones(p) if eta is None else eta
     eta = jnp.asarray(eta, dtype=jnp.float64) if not _concrete(eta) else np.asarray(eta, np.float64)
     if eta.shape != (p,):
         raise ValueError(
-            f"identify(): eta must have one entry per parameter ({p}), got shape {eta.shape}"
+            f"{fn}(): eta must have one entry per parameter ({p}), got shape {eta.shape}"
         )
     return structure, eta
 
@@ -101,10 +104,16 @@ def identify_core(signals, structure, mf, eta, length: int, end=None,
     with a root in the closed right half plane sets `Status.UNSTABLE` (the Routh test
     `hurwitz`, as the search's validation and SRIVC apply it), except where a_n vanished or
     values are non-finite: those bits already say the coefficients are no model."""
-    ms = modulated_columns(signals, structure, mf, length, end)
-    G = gram_matrix(ms)
     K = signals.n_inputs
     n = structure.n
+    levels = None  # with an offset term the columns are those of the centred signals
+    if signals.offset:
+        starts = np.cumsum([n + 1] + [mk + 1 for mk in structure.m])[:K]
+        levels = level_vector(signal_levels(signals), starts, structure.n_params + 1)
+        eta = centred_eta(eta, levels)
+    ms = modulated_columns(signals, structure, mf, length, end,
+                           None if levels is None else signal_levels(signals))
+    G = gram_matrix(ms)
     alive = jnp.sqrt(jnp.maximum(jnp.diagonal(G), 0.0)) > DEAD_COLUMN_RTOL * ms.bounds
     alive = alive & ~steady_input_columns(ms.excited, n + 1, [mk + 1 for mk in structure.m],
                                           signals.offset)
@@ -124,13 +133,16 @@ def identify_core(signals, structure, mf, eta, length: int, end=None,
 
         theta, ms, G = jax.lax.fori_loop(0, FEEDTHROUGH_STEPS, step, (theta, ms, G))
         theta, cond, reduced = constrained_solve(G, eta, alive)
+    if levels is not None:
+        theta = uncentred(theta, levels)
     finite = jnp.isfinite(signals.y).all() & jnp.isfinite(signals.u).all()
     status, div, quad, J_rel = finish_solve(theta, G, reduced, n, finite,
-                                            jnp.all(ms.excited) & jnp.all(alive))
-    status = status | jnp.where(ms.fits, 0, Status.OUT_OF_BOUNDS)
-    # a traced setting outside its valid range: no model (NaN), flagged as out of bounds
-    valid = settings_valid(signals, n, mf, ms.first, end, theta.shape[0])
-    status = status | jnp.where(valid, 0, Status.OUT_OF_BOUNDS)
+                                            jnp.all(ms.excited) & jnp.all(alive), levels=levels)
+    # a traced setting outside its valid range, or whose kernels (h + delays over dt) do not
+    # fit the compiled length (the truncated kernels gave plausible numbers): no model (NaN),
+    # flagged as out of bounds
+    valid = settings_valid(signals, n, mf, ms.first, end, theta.shape[0]) & ms.fits
+    status = jnp.where(valid, status, Status.OUT_OF_BOUNDS | (status & Status.NONFINITE))
     theta, quad, J_rel = (jnp.where(valid, x, jnp.nan) for x in (theta, quad, J_rel))
     bs, pos = [], n + 1
     for k in range(K):

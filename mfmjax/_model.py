@@ -109,6 +109,9 @@ class Model(eqx.Module):
         for k, bk in enumerate(bs):
             if not np.all(np.isfinite(bk)):
                 raise ValueError(f"Model.from_coefficients(): b[{k}] contains NaN or inf")
+            if bk.size == 0:  # it said "Structure(): m[0] must be an integer >= 0 (got -1)"
+                raise ValueError(f"Model.from_coefficients(): b[{k}] is empty; give at least "
+                                 f"b_{k + 1}0 (or leave the input out of b)")
         structure = Structure(a.size - 1, [bk.size - 1 for bk in bs])
         K = len(bs)
         an = a[-1]

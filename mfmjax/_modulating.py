@@ -150,22 +150,51 @@ def phi_scaled(r, N, M, i: int, *, xp=jnp):
     return xp.where(inside, total, 0.0)
 
 
+def _modulating_function(fn: str, mf) -> None:
+    if not isinstance(mf, ModulatingFunction):
+        raise TypeError(f"{fn}(): mf must be a ModulatingFunction (ModulatingFunction(N, M, "
+                        f"h)), got {type(mf).__name__}")
+
+
+def _end_value(N, M, i: int, at_one: bool):
+    r"""$p_i$'s one-sided limit at r = 0 (or 1 with `at_one`): the Leibniz terms whose power
+    of r (of 1 - r) is 0 survive, positive powers vanish, negative ones (real N, M < i) are
+    infinite; 0 for i < N (i < M), where phi^(i) is continuous there."""
+    total = jnp.zeros(jnp.broadcast_shapes(jnp.shape(N), jnp.shape(M)))
+    for j in range(i + 1):
+        coef = math.comb(i, j) * _falling(N, j) * (-1.0) ** (i - j) * _falling(M, i - j)
+        power = (M - i + j) if at_one else (N - j)
+        total = total + jnp.where(power == 0, coef, jnp.where(
+            (power < 0) & (coef != 0), jnp.sign(coef) * jnp.inf, 0.0))
+    return total
+
+
 def phi(t, mf: ModulatingFunction, i: int = 0):
-    r"""$\phi^{(i)}(t) = h^{N+M-i} p_i(t/h)$ in physical time (0 outside $[0, h]$)."""
+    r"""$\phi^{(i)}(t) = h^{N+M-i} p_i(t/h)$ in physical time (0 outside $[0, h]$; at $t = 0$
+    and $t = h$ the one-sided value from inside, which differs from 0 for $i \ge N$ or
+    $i \ge M$; NaN at a NaN t)."""
     require_x64("phi")
     i = derivative_order("phi", i)
+    _modulating_function("phi", mf)
     h = mf.h
-    return h ** (mf.N + mf.M - i) * phi_scaled(jnp.asarray(t) / h, mf.N, mf.M, i)
+    r = jnp.asarray(t, dtype=jnp.float64) / h
+    p = phi_scaled(r, mf.N, mf.M, i)
+    p = jnp.where(r == 0, _end_value(mf.N, mf.M, i, False), p)
+    p = jnp.where(r == 1, _end_value(mf.N, mf.M, i, True), p)
+    return h ** (mf.N + mf.M - i) * jnp.where(jnp.isnan(r), jnp.nan, p)
 
 
 def phi_integral(a, b, mf: ModulatingFunction, i: int = 0):
     r"""Exact $\int_a^b \phi^{(i)}(t)\,dt$.
 
     For $i \ge 1$ this is $\phi^{(i-1)}(b) - \phi^{(i-1)}(a)$; for $i = 0$ it is
-    $h^{N+M+1} B(N+1, M+1)\,[I_{b/h} - I_{a/h}]$ with the regularised incomplete beta $I$.
+    $h^{N+M+1} B(N+1, M+1)\,[I_{b/h} - I_{a/h}]$ with the regularised incomplete beta $I$,
+    differentiable in a, b and h but not in N and M (JAX's `betainc` has no gradient in its
+    parameters; the estimators never integrate phi itself).
     """
     require_x64("phi_integral")
     i = derivative_order("phi_integral", i)
+    _modulating_function("phi_integral", mf)
     if i >= 1:
         return phi(b, mf, i - 1) - phi(a, mf, i - 1)
     h = mf.h

@@ -331,6 +331,7 @@ def final_state(model: Model, signals: Signals, window=None):
 def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
     r"""Eq. (16): $x(t_j)$ from the last $T_{OB}$ of data before each $t_j$ in `times`.
 
+    Each $t_j$ and $T_{OB}$ are taken to the nearest sample (x at the sample nearest $t_j$).
     All windows have the same length, so this is one vmapped computation. A window whose
     observer is unobservable or overflows raises as `observe` does, naming its t_j (under an
     outer jit/vmap its row is NaN).

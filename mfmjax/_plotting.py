@@ -41,18 +41,27 @@ def plot_online(series: dict, models: list[dict], path, *, title: str = "", ylab
     fig, ax = plt.subplots(figsize=(10, 4), dpi=100)
     t0 = (float(t[0]) if t.size else 0.0) if start is None else start
     t_end = float(t[-1]) if end is None and t.size else end
-    if models:
+    # only what falls on the time axis (a resumed run plots its own series with every model:
+    # the earlier bands were out of view but in the legend)
+    right = t_end if t_end is not None else np.inf
+    if models and models[0]["sim_start"] > t0:
         ax.axvspan(t0, models[0]["sim_start"], color="#cfe8cf", lw=0,
                    label="identifying model 1")
+    shown = 0
     for i, rec in enumerate(models):
         stop = rec["sim_end"] if rec["sim_end"] is not None else t_end
+        if (stop is not None and stop <= t0) or rec["sim_start"] >= right:
+            continue
         ax.axvspan(rec["sim_start"], stop, color=("#d6e4f5", "#f7efc6")[i % 2], lw=0,
-                   label="model k predicts (band k)" if i == 0 else None)
-        ax.text((rec["sim_start"] + stop) / 2, 0.97, str(rec["model"]), transform=ax.get_xaxis_transform(),
-                ha="center", va="top", fontsize=8, color="#333333")
+                   label="model k predicts (band k)" if shown == 0 else None)
+        ax.text((max(rec["sim_start"], t0) + min(stop, right)) / 2, 0.97, str(rec["model"]),
+                transform=ax.get_xaxis_transform(), ha="center", va="top", fontsize=8,
+                color="#333333")
+        shown += 1
     ops = {}
     for rec in models:
-        ops.setdefault(rec["operating_point_time"], rec["operating_point"])
+        if t0 <= rec["operating_point_time"] <= right:
+            ops.setdefault(rec["operating_point_time"], rec["operating_point"])
     for k, (time, label) in enumerate(sorted(ops.items())):
         ax.axvline(time, color="k", ls=":", lw=1.0, label="operating point" if k == 0 else None)
         ax.text(time, 0.90, f" {label}", transform=ax.get_xaxis_transform(), fontsize=8,
@@ -177,19 +186,23 @@ def plot_bode(fr, path, nyquist=None) -> None:
             ap.fill_between(fr.w, fr.phase_deg[k] - z * fr.phase_deg_std[k],
                             fr.phase_deg[k] + z * fr.phase_deg_std[k], color=line.get_color(),
                             alpha=0.25, lw=0)
+    note = ""
     if nyquist is not None:
         for ax in (am, ap):
-            ax.axvline(nyquist, color="0.3", ls="--", lw=0.9,
-                       label="Nyquist of the data (pi/dt)" if ax is am else None)
-            if nyquist < fr.w[-1]:
-                ax.axvspan(nyquist, fr.w[-1], color="0.85", alpha=0.5, lw=0,
+            if nyquist <= fr.w[-1]:  # beyond the grid its line and legend entry were
+                # clipped out of view: the title says where it is instead
+                ax.axvline(nyquist, color="0.3", ls="--", lw=0.9,
+                           label="Nyquist of the data (pi/dt)" if ax is am else None)
+                ax.axvspan(max(nyquist, fr.w[0]), fr.w[-1], color="0.85", alpha=0.5, lw=0,
                            label="above it: not in the data" if ax is am else None)
         am.set_xlim(fr.w[0], fr.w[-1])
+        if nyquist > fr.w[-1]:
+            note = f"; Nyquist of the data (pi/dt) at {nyquist:.3g}, above this grid"
     am.set_ylabel("magnitude [dB]")
     ap.set_ylabel("phase [deg]")
     ap.set_xlabel("frequency [rad per time unit]")
     am.set_title("Bode diagram" + ("" if fr.mag_db_std is not None else
-                                   " (no covariance: no band)"), fontsize=9)
+                                   " (no covariance: no band)") + note, fontsize=9)
     am.legend(loc="best", fontsize=8)
     fig.tight_layout()
     fig.savefig(path)

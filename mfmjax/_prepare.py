@@ -126,7 +126,7 @@ class Trend(eqx.Module):
                           f"{self.output_name!r}, inputs {list(self.input_names)}, and the record "
                           f"has output {signals.output_name!r}, inputs "
                           f"{list(signals.input_names)}: their lines are removed in that order; "
-                          "check that the record holds the same signals", stacklevel=2)
+                          "check that the record holds the same signals", stacklevel=_b.user_stacklevel())
         t = np.asarray(signals.t)
         y = np.asarray(signals.y) - np.asarray(self.output_line(t))
         u = np.asarray(signals.u) - np.asarray(self.input_lines(t))
@@ -249,7 +249,7 @@ def detrend(signals: Signals, kind: str = "linear", *, offset: bool = False
             warnings.warn(
                 f"detrend(): input {name!r} is a straight line over the record, so nothing of "
                 "it is left after detrending (the model cannot see it); use kind='constant' "
-                "or drop the input", stacklevel=2)
+                "or drop the input", stacklevel=_b.user_stacklevel())
     return _detrended(signals, y_d, u_d, offset, note), trend
 
 
@@ -371,7 +371,7 @@ def resample_arrays(fn: str, t, y, u, *, dt, intersample="foh", output_rule: str
             warnings.warn(
                 f"{fn}(): dt={dt:g} is coarser than the median step of {name!r} ({median:g}); its "
                 "faster content aliases without a low-pass filter: filter first or choose a "
-                "smaller dt", stacklevel=3)
+                "smaller dt", stacklevel=_b.user_stacklevel())
             break
     median = float(np.median(np.diff(t)))
     if dt * _FINE < median:  # 199,003 samples from 200 rows logged in ms with dt in s
@@ -389,7 +389,7 @@ def resample_arrays(fn: str, t, y, u, *, dt, intersample="foh", output_rule: str
                 f"({gaps[big]:g}, {gaps[big] / np.median(gaps):.3g} of its median steps): it is "
                 "interpolated across, which no plant did; split the record there and join the "
                 "parts with Signals.concatenate (command line: --identify-window on one side "
-                "of it)", stacklevel=3)
+                "of it)", stacklevel=_b.user_stacklevel())
     grid = start + dt * np.arange(steps + 1, dtype=np.float64)
     y_new = _interp(t, y, grid, "cubic" if output_rule == "cubic" else "foh", dt)
     u_new = np.zeros((grid.shape[0], K), dtype=np.float64)

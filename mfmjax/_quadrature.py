@@ -107,19 +107,33 @@ def kernel_weights(mf: ModulatingFunction, i: int, dt: float, rule: str, delay, 
     """
     require_x64("kernel_weights")
     i = derivative_order("kernel_weights", i)
+    if not isinstance(mf, ModulatingFunction):
+        raise TypeError(f"kernel_weights(): mf must be a ModulatingFunction, got "
+                        f"{type(mf).__name__}")
+    if isinstance(length, bool) or not isinstance(length, int | np.integer) or length < 2:
+        raise TypeError(f"kernel_weights(): length must be an int >= 2 (the number of "
+                        f"weights, a static size), got {length!r}")
     concrete = lambda x: not any(is_traced(v) for v in jax.tree.leaves(x))  # noqa: E731
     if concrete(dt) and not (math.isfinite(float(dt)) and float(dt) > 0):
         raise ValueError(f"kernel_weights(): dt must be a finite number > 0, got {dt!r}")
-    if concrete(delay) and np.any(np.asarray(delay) < 0):
-        raise ValueError(f"kernel_weights(): delay must be >= 0, got {delay!r}")
+    if concrete(delay) and (np.ndim(delay) != 0 or not np.isfinite(np.asarray(delay, float))
+                            or np.asarray(delay) < 0):
+        raise ValueError(f"kernel_weights(): delay must be one finite number >= 0 (one "
+                         f"kernel's delay), got {delay!r}")
     if concrete(dt) and concrete(delay) and concrete(mf.h):
         need = kernel_length(float(np.max(mf.h)) + float(np.max(delay)), float(dt))
         if length < need:
             raise ValueError(f"kernel_weights(): length={length} is shorter than the support "
                              f"(h + delay) / dt: it needs {need} samples, or the weights are "
                              "cut off")
-    return profile_weights(lambda r: phi_scaled(r, mf.N, mf.M, i)[None], mf.h, dt, rule, delay,
-                           length)[0]
+    w = profile_weights(lambda r: phi_scaled(r, mf.N, mf.M, i)[None], mf.h, dt, rule, delay,
+                        length)[0]
+    # traced values are not checked above: a support beyond `length` (cut-off weights) or a
+    # negative delay gives NaN, not plausible weights
+    span = jnp.asarray(mf.h, jnp.float64) + jnp.asarray(delay, jnp.float64)
+    ok = (support_samples(span, dt) <= length - 1) & (jnp.asarray(delay) >= 0) & (
+        jnp.asarray(dt) > 0)
+    return jnp.where(ok, w, jnp.nan)
 
 
 def legendre_weights(degree: int, h, dt: float, rule: str, delay, length: int):
@@ -184,7 +198,7 @@ def profile_weights(profile, h, dt: float, rule: str, delay, length: int):
         start = jnp.clip(cell.astype(jnp.int32) - 1, 0, jnp.maximum(cap - 3, 0))
         idx = start[:, None] + jnp.arange(4, dtype=jnp.int32)[None, :]
         z = xi - start[:, None].astype(jnp.float64)
-        basis = jnp.stack(
+        cubic = jnp.stack(
             [
                 -(z - 1) * (z - 2) * (z - 3) / 6,
                 z * (z - 2) * (z - 3) / 2,
@@ -193,6 +207,12 @@ def profile_weights(profile, h, dt: float, rule: str, delay, length: int):
             ],
             axis=-1,
         )
+        # a support of 2 samples (h + tau <= 2 dt) holds 3 nodes: the parabola through them
+        # (a cubic's 4th node lay before the support: at the first valid sample, before
+        # the record, read as 0)
+        parabola = jnp.stack([(z - 1) * (z - 2) / 2, -z * (z - 2), z * (z - 1) / 2,
+                              jnp.zeros_like(z)], axis=-1)
+        basis = jnp.where(cap < 3, parabola, cubic)
     contrib = jnp.einsum("qcg,cgn->qcn", kern, basis)  # (Q, cells, nodes)
     idx = jnp.minimum(idx, length - 1)
     Q = contrib.shape[0]

@@ -65,7 +65,16 @@ def forced_response(model: Model, u, dt: float):
         modes.append("zoh")
         delays.append(jnp.asarray(0.0))
     Phi, drive, direct = forced_terms(ss, cols, modes, delays, dt, T)
-    return ss, Phi, drive, direct
+    # a negative or non-finite delay (a model edited by hand) is no dead time: it read
+    # future samples; NaN (traced; eager calls refuse it, `_boundary.model_delays`)
+    ok = delays_valid(model)
+    return ss, Phi, jnp.where(ok, drive, jnp.nan), jnp.where(ok, direct, jnp.nan)
+
+
+def delays_valid(model: Model):
+    """The model's delays are dead times: finite and >= 0 (a traced bool)."""
+    d = jnp.asarray(model.delays, jnp.float64)
+    return jnp.all(jnp.isfinite(d) & (d >= 0))
 
 
 def forced_terms(ss, cols, modes, delays, dt: float, T: int, rows=None):
@@ -106,7 +115,9 @@ def simulate_status(model: Model, u, x0, dt: float, valid=None):
     (_, bad), xs = jax.lax.scan(step, (jnp.asarray(x0, dtype=jnp.float64), False),
                                 (drive, inside))
     y = xs @ ss.C[0] + direct
-    return y, xs, jnp.where(bad, Status.OVERFLOW, 0).astype(jnp.int32)
+    status = jnp.where(bad, Status.OVERFLOW, 0) | jnp.where(delays_valid(model), 0,
+                                                              Status.OUT_OF_BOUNDS)
+    return y, xs, status.astype(jnp.int32)
 
 
 def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False):
@@ -127,6 +138,7 @@ def simulate(model: Model, u, x0=None, *, dt: float, return_state: bool = False)
             if isinstance(u, Model) else "")
         raise TypeError(f"simulate(): model must be a Model, got {type(model).__name__}{hint}")
     K = model.n_inputs
+    _b.model_delays("simulate", model)
     if isinstance(u, Signals):
         raise TypeError("simulate(): u must be the inputs (T, K), got a Signals: pass "
                         "signals.u, or use observe(model, signals) / compare(model, signals) "

@@ -6,6 +6,7 @@ import jax.numpy as jnp
 
 from . import _linalg
 from ._boundary import require_x64
+from ._jit import jit
 from ._status import Status
 
 DEAD_COLUMN_RTOL = 1e-10  # column norm below this fraction of its bound: no excitation, masked
@@ -14,18 +15,61 @@ ILL_CONDITIONED = 1e12  # lambda_max / lambda_2 of the equilibrated G above this
 _EPS = jnp.finfo(jnp.float64).eps
 
 
+def check_gram(fn: str, G, eta, active=None) -> None:
+    """Concrete arguments of the public solves: a Gram matrix (finite, symmetric, a
+    non-negative diagonal) and a constraint that some active column carries (else eq. (11)
+    has no solution). Traced ones are not checked (their result is NaN where it fails)."""
+    import numpy as np
+
+    from ._boundary import is_traced
+
+    if any(is_traced(x) for x in (G, eta, active)):
+        return
+    G, eta = np.asarray(G, np.float64), np.asarray(eta, np.float64)
+    on = np.ones(eta.shape, bool) if active is None else np.asarray(active, bool)
+    if G.shape[0] == 0:
+        raise ValueError(f"{fn}(): G is empty (0 parameters); give the Gram of at least one "
+                         "column")
+    if not (np.all(np.isfinite(G)) and np.all(np.isfinite(eta))):
+        raise ValueError(f"{fn}(): G and eta must be finite (a non-finite Gram comes from "
+                         "non-finite data)")
+    scale = np.max(np.abs(G))
+    if np.max(np.abs(G - G.T)) > 1e-8 * scale or np.any(np.diagonal(G) < 0):
+        raise ValueError(f"{fn}(): G must be a Gram matrix (symmetric, positive semidefinite: "
+                         "no negative diagonal entry); give gram(modulated_signals(...))")
+    if not np.any(on & (eta != 0)):
+        raise ValueError(f"{fn}(): eta is zero on every active column, so eta^T theta = 1 "
+                         "(eq. 11) has no solution; give eta with nonzero entries (default "
+                         "all ones)")
+
+
+def _finite_result(fn: str, theta, why: str) -> None:
+    from ._boundary import is_traced
+
+    if not is_traced(theta):
+        import numpy as np
+
+        if not np.all(np.isfinite(np.asarray(theta))):
+            raise ValueError(f"{fn}(): no finite solution: {why}")
+
+
 def closed_form(G, eta):
     r"""The paper's eq. (12): $\theta^0 = G^{-1}\eta / (\eta^T G^{-1} \eta)$. Reference only.
 
-    Fails (inf/NaN) when G is singular, which it is on noise-free data in exact arithmetic.
+    Fails when G is singular, which it is on noise-free data in exact arithmetic: eager calls
+    raise then, traced ones return inf/NaN.
     """
     require_x64("closed_form")
     G, eta = jnp.asarray(G, jnp.float64), jnp.asarray(eta, jnp.float64)  # float32 in: float64 out
     if G.ndim != 2 or G.shape[0] != G.shape[1] or eta.shape != G.shape[:1]:
         raise ValueError(f"closed_form(): G must be square (p, p) and eta (p,); got G "
                          f"{G.shape} and eta {eta.shape}")
+    check_gram("closed_form", G, eta)
     g = jnp.linalg.solve(G, eta)
-    return g / (eta @ g)
+    theta = g / (eta @ g)
+    _finite_result("closed_form", theta, "G is singular (as on noise-free data) or eta^T "
+                   "G^-1 eta = 0; eq. (12) needs an invertible G: use constrained_solve")
+    return theta
 
 
 def constrained_solve(G, eta, active, conditioning: bool = True):
@@ -80,7 +124,21 @@ def solve_status(theta, reduced_cond, finite_data):
     return status | jnp.where(reduced_cond > ILL_CONDITIONED, Status.ILL_CONDITIONED, 0)
 
 
-def finish_solve(theta, G, reduced_cond, n, data_ok, excited, n_max: int | None = None):
+def centred_eta(eta, levels):
+    r"""The constraint of eq. (11) on the centred parameters (`level_vector`): $\eta^T\theta =
+    \eta'^T\theta'$ with $\eta' = \eta - \eta_{off}\,l$, so the centred solve is the same
+    minimiser (noisy data included)."""
+    return eta - eta[-1] * levels
+
+
+def uncentred(theta, levels):
+    r"""The signals' own parameters from the centred solve's: $\theta_{off} = \theta_{off}' -
+    l^T\theta'$ (`level_vector`)."""
+    return theta.at[-1].add(-(levels @ theta))
+
+
+def finish_solve(theta, G, reduced_cond, n, data_ok, excited, n_max: int | None = None,
+                 levels=None):
     r"""The post-solve step shared by `identify` and `search` (one candidate of order `n`).
 
     Status bits of the solve (`solve_status`), `NO_EXCITATION` unless `excited`, `A_N_ZERO`
@@ -90,7 +148,9 @@ def finish_solve(theta, G, reduced_cond, n, data_ok, excited, n_max: int | None 
 
     `n` is a static int in the compact layout (a_0..a_n first); in the padded layout of the
     search (a block a_0..a_{n_max}, zero beyond the candidate's order) it may be traced, with
-    `n_max` the static block size.
+    `n_max` the static block size. `levels` (`level_vector`): G is the Gram of the centred
+    signals and `theta` in the signals' own parameters (`uncentred`): the quadratic form and
+    J_rel are those of the signals' own Gram.
 
     **Returns:** `(status, divisor, quad, J_rel)`.
     """
@@ -100,8 +160,34 @@ def finish_solve(theta, G, reduced_cond, n, data_ok, excited, n_max: int | None 
     a_len = n + 1 if n_max is None else n_max + 1
     an_ok = jnp.abs(an) > A_N_RTOL * jnp.max(jnp.abs(theta[:a_len]))
     status = status | jnp.where(an_ok, 0, Status.A_N_ZERO)
-    quad = jnp.maximum(theta @ G @ theta, 0.0)
-    terms = jnp.sum(theta**2 * jnp.diagonal(G))
+    diag = jnp.diagonal(G)
+    centred = theta
+    if levels is not None:  # G = P^T G' P with P = I + e_off l^T (the offset last)
+        centred = theta.at[-1].add(levels @ theta)
+        diag = diag + 2.0 * levels * G[:, -1] + levels**2 * G[-1, -1]
+    quad = jnp.maximum(centred @ G @ centred, 0.0)
+    terms = jnp.sum(theta**2 * diag)
     J_rel = jnp.sqrt(quad / jnp.where(terms > 0, terms, 1.0))
     return status, jnp.where(an_ok, an, 1.0), quad, J_rel
 
+
+
+def public_constrained_solve(G, eta, active, conditioning: bool = True):
+    """`constrained_solve` as one compiled program, its concrete arguments checked
+    (`check_gram`) and a result that is not finite refused (eager; traced: NaN)."""
+    require_x64("constrained_solve")
+    shapes = [jnp.shape(x) for x in (G, eta, active)]
+    if len(shapes[0]) != 2 or shapes[0][0] != shapes[0][1] or shapes[1] != shapes[0][:1] \
+            or shapes[2] != shapes[0][:1]:
+        raise ValueError(f"constrained_solve(): G must be square (p, p), eta and active (p,); "
+                         f"got G {shapes[0]}, eta {shapes[1]} and active {shapes[2]}")
+    check_gram("constrained_solve", G, eta, active)
+    out = _solve_program(G, eta, active, conditioning)
+    _finite_result("constrained_solve", out[0], "G is zero (or not finite) on the active "
+                   "columns; check the data and the mask")
+    return out
+
+
+public_constrained_solve.__doc__ = constrained_solve.__doc__  # the same contract and name
+public_constrained_solve.__name__ = public_constrained_solve.__qualname__ = "constrained_solve"
+_solve_program = jit(constrained_solve)  # one program (the eager loops were traced each call)

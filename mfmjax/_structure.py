@@ -33,14 +33,14 @@ class Structure(eqx.Module):
                 )
         self.n, self.m = n, tuple(int(mk) for mk in m)
 
-    def for_inputs(self, K: int) -> Structure:
+    def for_inputs(self, K: int, fn: str = "identify") -> Structure:
         """Broadcast a single m to K inputs, or check that m has K entries."""
         if len(self.m) == K:
             return self
         if len(self.m) == 1 and K > 1:
             return Structure(self.n, self.m * K)
         raise ValueError(
-            f"identify(): the data have K={K} inputs but m has {len(self.m)} entries "
+            f"{fn}(): the data have K={K} inputs but m has {len(self.m)} entries "
             f"(m={list(self.m)}); give one numerator order per input"
         )
 

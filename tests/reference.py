@@ -83,7 +83,9 @@ def _basis(rule: str, cell: int, cap: int):
     if rule == "foh":
         return [(cell, [one, -one]), (cell + 1, [Fraction(0), one])]
     start = min(max(cell - 1, 0), max(cap - 3, 0))
-    nodes = [start + q - cell for q in range(4)]  # node positions in the local variable xi
+    # node positions in the local variable xi: 4 (a cubic), 3 (a parabola) where the support
+    # holds only 3 samples (cap = 2)
+    nodes = [start + q - cell for q in range(4 if cap >= 3 else 3)]
     out = []
     for m, xm in enumerate(nodes):
         poly = [one]

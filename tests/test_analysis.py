@@ -248,11 +248,26 @@ def test_frequency_response_and_band_match_numpy(tmp_path):
     np.testing.assert_allclose(fr.phase_deg_std[0], np.degrees(sd[1]), rtol=1e-6, atol=1e-8)
     fr.plot(tmp_path / "bode.png")
     _is_png(tmp_path / "bode.png")
-    # the data's Nyquist frequency marked (inside the range: the band above it shaded; beyond
-    # it: the line alone); a non-positive one refused by name
-    for nyq in (float(np.median(w)), 10 * float(w[-1])):
-        fr.plot(tmp_path / "bode_nyquist.png", nyquist=nyq)
-        _is_png(tmp_path / "bode_nyquist.png")
+    # the data's Nyquist frequency marked (inside the range: a line, the band above it
+    # shaded; beyond it: said in the title, not a legend entry for a line clipped out of
+    # view); a non-positive one refused by name
+    from matplotlib.figure import Figure
+
+    seen, save = [], Figure.savefig
+
+    def spy(fig, *args, **kw):
+        top = fig.axes[0]
+        seen.append(([t.get_text() for t in top.get_legend().get_texts()], top.get_title()))
+        return save(fig, *args, **kw)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Figure, "savefig", spy)
+        for nyq in (float(np.median(w)), 10 * float(w[-1])):
+            fr.plot(tmp_path / "bode_nyquist.png", nyquist=nyq)
+            _is_png(tmp_path / "bode_nyquist.png")
+    (inside, title_in), (beyond, title_out) = seen
+    assert "Nyquist of the data (pi/dt)" in inside and "above this grid" not in title_in
+    assert "Nyquist of the data (pi/dt)" not in beyond and "above this grid" in title_out
     with pytest.raises(ValueError, match="nyquist"):
         fr.plot(tmp_path / "bad.png", nyquist=0.0)
     default = mfmjax.frequency_response(model)
@@ -349,6 +364,12 @@ def test_residuals_of_a_perfect_fit_are_undefined_not_failed():
         zero = mfmjax.residuals(true, exact)
     assert zero.white is None and zero.ok and "FAIL" not in zero.summary()
     assert res.to_dict()["whiteness"]["pass"] is None
+    # "JSON-ready": strict JSON (NaN statistics of the undefined tests are None; they made
+    # json.dumps(allow_nan=False) fail)
+    import json
+
+    for r in (res, zero):
+        json.dumps(r.to_dict(), allow_nan=False)
 
 
 # -- export -------------------------------------------------------------------------------------
@@ -488,3 +509,19 @@ def test_state_space_exports_refuse_what_is_not_a_model():
         for bad in (sig, np.ones(3)):
             with pytest.raises(TypeError, match=rf"{fn.__name__}\(\): model must be a Model"):
                 fn(bad)
+
+
+def test_a_constant_output_has_no_fit_and_says_so():
+    """compare and residuals on an output that does not move: the fit % is undefined. It was
+    NaN with nothing said and the summary printed "fit nan %" (fit_percent refuses it)."""
+    sig = record()
+    flat = Signals(np.ones(sig.n_samples), sig.u, dt=DT, intersample=sig.intersample,
+                   delays=sig.delays)
+    with pytest.warns(UserWarning, match=r"compare\(\): the output is constant on the window, "
+                      r"so the fit % is undefined") as got:
+        cmp = mfmjax.compare(_model(), flat, window=(TAU, (T - 1) * DT))
+    assert np.isnan(cmp.fit) and "fit undefined (constant output)" in cmp.summary()
+    assert __file__ in [w.filename for w in got]
+    with pytest.warns(UserWarning, match=r"residuals\(\): the output is constant"):
+        res = mfmjax.residuals(_model(), flat, window=(TAU, (T - 1) * DT))
+    assert "fit undefined (constant output)" in res.summary() and res.to_dict()["fit"] is None

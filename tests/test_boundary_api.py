@@ -528,7 +528,7 @@ def test_derivative_orders_kernels_and_solves_are_checked():
                                                       ".* it needs 201 samples"),
                         ((1, 0.0, "cubic", 0.0, 220), "dt must be a finite number > 0"),
                         ((1, -0.01, "cubic", 0.0, 220), "dt must be a finite number > 0"),
-                        ((1, 0.01, "cubic", -0.5, 220), "delay must be >= 0")):
+                        ((1, 0.01, "cubic", -0.5, 220), "delay must be one finite number >= 0")):
         with pytest.raises(ValueError, match=rf"kernel_weights\(\): {match}"):
             mfmjax.kernel_weights(mf, *args)
     # at the support's own length the weights hold the whole profile: their sum is the
@@ -625,3 +625,27 @@ def test_record_lists_signals_given_as_u_and_a_path_that_is_not_one_are_named(tm
     with pytest.raises(TypeError, match=r"load_model\(\): path must be a file name, got "
                                         r"NoneType"):
         mfmjax.load_model(None)
+
+
+def test_building_block_messages_name_the_argument():
+    """JAX's or NumPy's own errors came out of these ("cannot convert float NaN to integer",
+    "Shapes must be 1D sequences", "'tuple' object has no attribute 'h'", and "Structure():
+    m[0] must be an integer >= 0 (got m[0]=-1)" for an empty b)."""
+    mf = mfmjax.ModulatingFunction(4, 4, 2.0)
+    cases = [
+        (lambda: mfmjax.phi(0.3, (3, 4, 2.0), 0), TypeError,
+         r"phi\(\): mf must be a ModulatingFunction"),
+        (lambda: mfmjax.phi_integral(0.0, 1.0, (3, 4, 2.0)), TypeError,
+         r"phi_integral\(\): mf must be a ModulatingFunction"),
+        (lambda: mfmjax.kernel_weights(mf, 0, 0.1, "foh", np.nan, 30), ValueError,
+         r"kernel_weights\(\): delay must be one finite number >= 0"),
+        (lambda: mfmjax.kernel_weights(mf, 0, 0.1, "foh", [0.0, 0.1], 30), ValueError,
+         r"kernel_weights\(\): delay must be one finite number >= 0"),
+        (lambda: mfmjax.kernel_weights(mf, 0, 0.1, "foh", 0.0, 30.0), TypeError,
+         r"kernel_weights\(\): length must be an int >= 2"),
+        (lambda: mfmjax.Model.from_coefficients([1.0, 1.0], [[]]), ValueError,
+         r"Model.from_coefficients\(\): b\[0\] is empty; give at least b_10"),
+    ]
+    for call, kind, says in cases:
+        with pytest.raises(kind, match=says):
+            call()

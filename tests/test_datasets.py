@@ -81,3 +81,13 @@ def test_daisy_errors(tmp_path):
                                              r"outputs are \['dry_bulb', 'wet_bulb', "
                                              r"'moisture'\]"):
             daisy("dryer", output="k")
+
+
+def test_daisy_says_when_path_is_another_file(tmp_path):
+    """A file of other columns gave read_csv's message, which names the CLI's --names."""
+    other = tmp_path / "seven.dat"
+    np.savetxt(other, np.arange(21.0).reshape(3, 7))
+    with pytest.raises(ValueError, match=r"daisy\(\): .*seven.dat does not have the 3 columns "
+                                         r"of heat_exchanger \(t, q, theta\): line 1 has 7 "
+                                         r"fields; check path="):
+        daisy("heat_exchanger", path=str(other))

@@ -129,3 +129,45 @@ def test_a_steady_input_is_masked_and_its_level_goes_to_the_offset():
     assert float(model.b[1][0]) == float(best.b[1][0]) == 0.0
     np.testing.assert_allclose(np.asarray(best.theta), np.asarray(model.theta), rtol=1e-9,
                                atol=1e-12)
+
+
+def test_building_blocks_refuse_what_identify_refuses():
+    """`modulated_signals` took a structure of another input count (columns of the second
+    input dropped, fits=True), N, M < n (the true theta then left a residual of 47 %), an h
+    beyond the record or end=0 (G all zeros) and a float end; `constrained_solve` and
+    `closed_form` returned NaN for a zero eta or G, and cond = 1 for a negative-definite G.
+    Concrete arguments are now refused by name."""
+    import pytest
+
+    sig = _small_record()  # 2 inputs, 15 s
+    mf = ModulatingFunction(3, 4, 2.0)
+    refuse = [
+        (lambda: modulated_signals(sig, Structure(3, (1, 0, 0)), mf),
+         r"modulated_signals\(\): the data have K=2 inputs but m has 3 entries"),
+        (lambda: modulated_signals(sig, Structure(3, (1, 0)), ModulatingFunction(1, 1, 2.0)),
+         r"modulated_signals\(\): N must be >= n"),
+        (lambda: modulated_signals(sig, Structure(3, (1, 0)), ModulatingFunction(3, 4, 25.0)),
+         r"modulated_signals\(\): the record .* is too short for h=25"),
+        (lambda: modulated_signals(sig, Structure(3, (1, 0)), mf, end=0), r"end must be"),
+        (lambda: modulated_signals(sig, Structure(3, (1, 0)), mf, end=100.5), r"end must be"),
+        (lambda: modulated_signals(np.ones(5), Structure(3, (1, 0)), mf),
+         r"modulated_signals\(\): signals must be a Signals"),
+    ]
+    for call, says in refuse:
+        with pytest.raises((ValueError, TypeError), match=says):
+            call()
+    G = np.asarray(gram(modulated_signals(sig, Structure(3, (1, 0)), mf)))
+    p, on = G.shape[0], np.ones(G.shape[0], bool)
+    for args, says in (((G, np.zeros(p), on), r"eta is zero on every active column"),
+                       ((np.zeros((p, p)), np.ones(p), on), r"no finite solution: G is zero"),
+                       ((-G, np.ones(p), on), r"G must be a Gram matrix"),
+                       ((G + np.triu(np.ones((p, p)), 1) * np.max(G), np.ones(p), on),
+                        r"G must be a Gram matrix"),
+                       ((np.full((p, p), np.nan), np.ones(p), on), r"G and eta must be finite"),
+                       ((np.zeros((0, 0)), np.zeros(0), np.zeros(0, bool)), r"G is empty")):
+        with pytest.raises(ValueError, match=r"constrained_solve\(\): " + says):
+            mfmjax.constrained_solve(*args)
+    with pytest.raises(ValueError, match=r"closed_form\(\): no finite solution: G is singular"):
+        mfmjax.closed_form(np.ones((3, 3)), np.ones(3))
+    theta, _, _ = mfmjax.constrained_solve(G, np.ones(p), on)  # the Gram itself: a solution
+    assert np.all(np.isfinite(np.asarray(theta)))

@@ -59,6 +59,19 @@ def test_phi_vanishes_at_ends_and_is_consistent():
         assert np.allclose(fd, phi(t, mf, i + 1), rtol=0, atol=1e-8 * np.max(np.abs(phi(t, mf, i + 1))))
 
 
+def test_phi_at_the_ends_is_the_one_sided_value_for_every_order():
+    """For i >= N (or i >= M) phi^(i) jumps at t = 0 (or h): the value on [0, h] is the
+    one-sided one (the exact reference's); it was 0, so phi_integral(0, h, i=4) of (3, 4, 2)
+    was 0 instead of phi^(3)(h) - phi^(3)(0) = -96. A NaN time gives NaN (it gave 0)."""
+    mf = ModulatingFunction(3, 4, 2.0)
+    t = np.array([0.0, 0.7, 2.0])
+    for i in range(8):
+        ref = R.phi(t, 3, 4, 2.0, i)
+        assert np.allclose(np.asarray(phi(t, mf, i)), ref, rtol=1e-12, atol=0), i
+    assert float(phi_integral(0.0, 2.0, mf, 4)) == -96.0
+    assert np.isnan(float(phi(np.nan, mf))) and np.isnan(float(phi(np.nan, mf, 2)))
+
+
 def test_phi_integral_exact():
     from scipy.integrate import quad
 

@@ -403,6 +403,27 @@ def test_moving_final_states_raises_where_observe_does():
     np.testing.assert_allclose(x, np.asarray(xs)[[500, 1000]], rtol=2e-9)
 
 
+def test_a_negative_model_delay_is_refused_eager_and_nan_traced():
+    """A model edited by hand to a negative delay simulated and observed as if it read future
+    inputs (finite, status 0, its delay gradient lost). Eager calls refuse it by name; traced
+    ones give NaN and a status."""
+    import equinox as eqx
+
+    sig, _ = _data(T=801)
+    bad = eqx.tree_at(lambda m: m.delays, _model(), np.array([-0.1, 0.0]))
+    says = r"model.delays must be finite and >= 0 \(dead times\), got \[-0.1, 0.0\]"
+    with pytest.raises(ValueError, match=r"simulate\(\): " + says):
+        mfmjax.simulate(bad, sig.u, dt=sig.dt)
+    with pytest.raises(ValueError, match=r"observe\(\): " + says):
+        mfmjax.observe(bad, sig)
+    y = jax.jit(lambda m: mfmjax.simulate(m, sig.u, dt=sig.dt))(bad)
+    assert np.all(np.isnan(np.asarray(y)))
+    obs = jax.jit(lambda m: mfmjax.observe(m, sig))(bad)
+    assert int(obs.status) != 0 and np.isnan(float(obs.E))
+    good = jax.jit(lambda m: mfmjax.observe(m, sig))(_model())
+    assert int(good.status) == 0 and float(good.E) < 1e-12
+
+
 def test_simulate_messages_show_the_callers_shape_and_the_argument_order():
     two = Model.from_coefficients([1.0, 1.0], [[1.0], [1.0]])
     u = np.ones((200, 2))

@@ -103,8 +103,10 @@ def test_trend_apply_to_a_second_record_and_restore():
                                   np.asarray(out.u))
     with pytest.warns(UserWarning, match=r"Trend.apply\(\): the trend was fitted on output "
                       r"'y', inputs \['valve', 'feed'\], and the record has output 'y', "
-                      r"inputs \['a', 'b'\]: their lines are removed in that order"):
+                      r"inputs \['a', 'b'\]: their lines are removed in that order") as got:
         by_name.apply(named(["a", "b"]))
+    # at the caller's line (it pointed into equinox's bound-method wrapper)
+    assert [w.filename for w in got] == [__file__]
 
 
 def test_detrend_boundary():
@@ -117,8 +119,9 @@ def test_detrend_boundary():
         mfmjax.detrend(np.zeros(5))
     t = 0.1 * np.arange(50)
     ramp = Signals(np.sin(t), 3.0 + 2.0 * t, dt=0.1)  # an input that is a line: nothing left
-    with pytest.warns(UserWarning, match="straight line over the record"):
+    with pytest.warns(UserWarning, match="straight line over the record") as got:
         mfmjax.detrend(ramp)
+    assert [w.filename for w in got] == [__file__]
 
 
 def test_identification_with_a_drift_is_rescued_by_detrend():
@@ -251,8 +254,10 @@ def test_resample_boundary(kwargs, exc, match):
 
 def test_resample_coarse_grid_warns_about_aliasing():
     t = np.linspace(0.0, 10.0, 201)  # step 0.05
-    with pytest.warns(UserWarning, match=r"dt=0.2 is coarser than the median step of 'y' \(0.05\)"):
+    with pytest.warns(UserWarning, match=r"dt=0.2 is coarser than the median step of 'y' "
+                      r"\(0.05\)") as got:
         sig = mfmjax.resample(t, np.sin(t), dt=0.2)
+    assert [w.filename for w in got] == [__file__]
     assert sig.n_samples == 51
 
 

@@ -13,6 +13,7 @@ CASES = [  # N, M, h, dt, delay: fractional h and delay on purpose
     (4, 5, 1.0, 0.1, 0.0),
     (2, 2, 0.55, 0.1, 0.07),
     (6, 5, 1.9, 0.1, 0.0),
+    (3, 4, 0.2, 0.1, 0.0),  # h = 2 dt: a support of 3 samples (the cubic rule's parabola)
 ]
 
 
@@ -51,12 +52,16 @@ def test_convergence_orders():
     assert _error("cubic", 0.05) < 1e-3 * _error("foh", 0.05)
 
 
-def test_zero_beyond_support_and_constant_integral():
-    mf = ModulatingFunction(3, 4, 1.23)
+@pytest.mark.parametrize("h,tau", [(1.23, 0.4), (0.2, 0.0)])
+def test_zero_beyond_support_and_constant_integral(h, tau):
+    # h = 2 dt: the cubic rule's 4th node (lag 3) lay before the support: at the first valid
+    # sample it read the sample before the record, as 0 (a 100 % coefficient error with an
+    # offset and a level of 1e4, before the columns were centred)
+    mf = ModulatingFunction(3, 4, h)
     L = kernel_length(3.0, 0.1)
     for rule in ("zoh", "foh", "cubic"):
-        w = np.asarray(kernel_weights(mf, 0, 0.1, rule, 0.4, L))
-        assert np.all(w[int(np.ceil((1.23 + 0.4) / 0.1)) + 1 :] == 0.0)
+        w = np.asarray(kernel_weights(mf, 0, 0.1, rule, tau, L))
+        assert np.all(w[int(np.ceil((h + tau) / 0.1 - 1e-9)) + 1 :] == 0.0)
         # all rules integrate a constant exactly: sum w = B(N+1, M+1)
         assert abs(w.sum() - 1 / 280) <= 1e-15
         w1 = np.asarray(kernel_weights(mf, 1, 0.1, rule, 0.4, L))
@@ -90,6 +95,13 @@ def test_jit_vmap_grad_in_h_and_delay():
         lo[argnum] -= eps
         fd = (g_jit(*hi) - g_jit(*lo)) / (2 * eps)
         assert abs(grad - fd) <= 1e-6 * abs(fd) + 1e-12
+    # traced values past what eager calls refuse: NaN (a support beyond L gave the cut-off
+    # weights, a sum of 2.3e-4 for 7.9e-4; a negative delay gave finite weights)
+    f_jit = jax.jit(f)
+    assert np.all(np.isnan(np.asarray(f_jit(2.4, 0.2))))  # (h + tau) / dt = 26 > L - 1
+    assert np.all(np.isnan(np.asarray(f_jit(1.37, -0.1))))
+    with pytest.raises(ValueError, match="shorter than the support"):
+        kernel_weights(ModulatingFunction(3, 4, 2.4), 1, 0.1, "cubic", 0.2, L)
 
 
 def test_gregory_weights():

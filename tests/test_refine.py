@@ -229,6 +229,11 @@ def test_cramer_rao_undetermined_parameters_are_infinite_and_shapes_checked():
     short, longer = (mfmjax.cramer_rao(model, u, x0, dt=0.1, sigma=0.05, length=k)[1]
                      for k in (120, 400))
     assert np.all(np.isfinite(short)) and np.all(longer < short)
+    # an experiment too large for float64 (u of 1e200): J^T J overflowed and every bound came
+    # back inf, read as "undetermined", with only NumPy's overflow warning
+    with pytest.raises(ValueError, match=r"cramer_rao\(\): the sensitivities overflow "
+                                         r"float64 .* scale the experiment"):
+        mfmjax.cramer_rao(model, u * 1e200, x0, dt=0.1, sigma=0.05)
 
 
 def test_cramer_rao_of_an_unstable_model_says_why_its_bounds_are_infinite():

@@ -277,7 +277,13 @@ def test_equation_error_only_mode(noisy):
     kw = dict(n=(1, 2, 3), N=(4,), M=(4,), h=(1.5, 1.7), m=[(0, 1), (0,)], chunk_size=1)
     full = mfmjax.search(noisy, score="J", **kw)
     fast = mfmjax.search(noisy, score="J", simulate=False, **kw)
-    assert np.array_equal(full.columns["theta"], fast.columns["theta"])
+    # the same solves in two programs (with and without the validation): XLA may order the
+    # offset's centring sums (`signal_levels`) differently in each, so they agree to rounding
+    # (7e-16 relative seen; 1e-12 as test_one_chunk_J_search_is_compiled_for_compile_time),
+    # and rank alike
+    theta, fast_theta = full.columns["theta"], fast.columns["theta"]
+    assert np.max(np.abs(theta - fast_theta)) <= 1e-12 * np.max(np.abs(theta))
+    assert np.array_equal(full.rank, fast.rank)
     assert np.all(np.isnan(fast.columns["E"]))
     with pytest.raises(ValueError, match="needs simulate=True"):
         mfmjax.search(noisy, score="E", simulate=False, **kw)

@@ -444,6 +444,23 @@ def test_traced_h_beyond_its_bound_is_flagged_not_truncated(record):
 
     assert int(status(2.2)) == 0  # above h_max but inside the compiled kernel: exact
     assert int(status(3.0)) & Status.OUT_OF_BOUNDS
+    # and no numbers: the truncated kernels gave a plausible a (0.86, 1.10, 3.07 at h = 8
+    # against 1.01, 3.53, 3.54 eagerly) and a finite E and dE/dh through `scores`
+    far = jax.jit(lambda h: mfmjax.identify(record, ST, ModulatingFunction(4, 5, h,
+                                                                           h_max=2.0)))(8.0)
+    assert int(far.status) == Status.OUT_OF_BOUNDS and np.all(np.isnan(np.asarray(far.a)[:-1]))
+    E = jax.jit(jax.value_and_grad(lambda h: mfmjax.scores(record, ST, h=h, N=4.0, M=5.0,
+                                                           h_max=2.0)["E"]))
+    assert all(np.isnan(float(v)) for v in E(8.0))
+    # a traced dt below the record's own (longer kernels) or not positive, a delay past
+    # delay_max: the same
+    for dt in (0.02, -DT):
+        bad = jax.jit(lambda dt: mfmjax.identify(eqx.tree_at(lambda s: s.dt, record, dt), ST,
+                                                 ModulatingFunction(4, 5, 2.0)))(dt)
+        assert int(bad.status) & Status.OUT_OF_BOUNDS and np.all(np.isnan(np.asarray(bad.a)[:-1]))
+    late = jax.jit(lambda d: mfmjax.identify(eqx.tree_at(lambda s: s.delays, record, d), ST,
+                                             ModulatingFunction(4, 5, 2.0), delay_max=0.5))
+    assert np.all(np.isnan(np.asarray(late(jnp.array([5.0, 0.0])).a)[:-1]))
 
 
 def test_traced_settings_outside_their_range_are_flagged_not_fitted(record):

@@ -14,13 +14,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _batch
-from .._gram import input_varies, steady_input_columns
+from .._gram import input_varies, level_vector, signal_levels, steady_input_columns
 from .._identify import FEEDTHROUGH_STEPS
 from .._jit import RUN_ONCE_OPTIONS, jit
 from .._linalg import hurwitz
 from .._quadrature import edge_padded
 from .._signals import Signals
-from .._solve import DEAD_COLUMN_RTOL, constrained_solve, finish_solve
+from .._solve import DEAD_COLUMN_RTOL, centred_eta, constrained_solve, finish_solve, uncentred
 from .._status import Status
 from ._grid import VALIDATION_BATCH, ChunkStatic, Plan
 from ._moments import moment_gram
@@ -83,6 +83,9 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
     pad = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])  # b blocks in the padded layout
 
     steady = steady_input_columns(varies, n_max + 1, [mk + 1 for mk in m_max], sig.offset)
+    # with an offset term the Grams are those of the centred signals (`signal_levels`)
+    levels = signal_levels(sig) if sig.offset else None
+    lv = None if levels is None else level_vector(levels, pad[:K], p)
 
     def one_nm(H, W, scale, h, coef):
         Cf = coef * (h ** (-hpow_i))[:, None, None]  # (p_ext, sources, Q)
@@ -101,6 +104,7 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
         n, mask, ft = c["n"], c["mask"], c["ft"]
         active = mask & alive
         eta = jnp.where(mask, eta_full, 0.0)
+        eta = eta if lv is None else centred_eta(eta, lv)
         G = Gx[:p, :p]
         if static.ft_inputs:  # m_k = n: the output columns corrected by D_k (see _gram)
             def step(_, carry):  # one program for every step (unrolled: 25 % more compile)
@@ -116,9 +120,10 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
             theta = constrained_solve(G, eta, active, conditioning=False)[0]
             theta, G = jax.lax.fori_loop(0, FEEDTHROUGH_STEPS, step, (theta, G))
         theta, cond, reduced = constrained_solve(G, eta, active)
+        theta = theta if lv is None else uncentred(theta, lv)
         dead = jnp.any(mask & ~alive)
         status, div, quad, J_rel = finish_solve(theta, G, reduced, n, finite, excited & ~dead,
-                                                n_max=n_max)
+                                                n_max=n_max, levels=lv)
         norm = theta / div
         b = [jnp.zeros(n_max + 1).at[: m_max[k] + 1].set(norm[pad[k] : pad[k] + m_max[k] + 1])
              for k in range(K)]
@@ -131,7 +136,7 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
 
     def grams(hd):  # one (h, delays) setting: the Gram of every (N, M)
         h, delays = hd
-        H, W, scale = moment_gram(sig, static, h, delays, where["segments"])
+        H, W, scale = moment_gram(sig, static, h, delays, where["segments"], levels)
         return jax.vmap(lambda coef: one_nm(H, W, scale, h, coef))(nm["coef"])
 
     def solve_pair(g, c):  # candidate `c` at setting `g`

@@ -30,26 +30,29 @@ def _fft_modulate(x, W):
     return conv.reshape(-1, T).T
 
 
-def moment_gram(sig: Signals, static: ChunkStatic, h, delays, segments):
+def moment_gram(sig: Signals, static: ChunkStatic, h, delays, segments, levels=None):
     r"""Sliding Legendre moments of every source and their Gram $H$ (one per (h, delays)).
 
     Every column of $c(t)$ for every (N, M) is $\sum_q c_q\,\text{moment}_q$ of one source,
-    so $G_{N,M} = C_{N,M} H C_{N,M}^T$ (module docstring)."""
+    so $G_{N,M} = C_{N,M} H C_{N,M}^T$ (module docstring). `levels` (`signal_levels`): the
+    moments of the centred output and inputs (the bounds still of the signals themselves)."""
     dt, T = sig.dt, sig.n_samples
-    signals, weights = [], []
+    signals, weights, shifts = [], [], []
     for kind, k, rule in static.sources:
         if kind == "y":
-            x, tau = sig.y, jnp.asarray(0.0)
+            x, tau, c = sig.y, jnp.asarray(0.0), 0
         elif kind == "u":
-            x, tau = sig.u[:, k], delays[k]
+            x, tau, c = sig.u[:, k], delays[k], k + 1
         elif kind == "v":  # what D_k u_k(t - tau_k) puts into the output samples (m_k = n)
-            x, tau = delayed_samples(sig.u[:, k], delays[k], dt, sig.intersample[k]), 0.0
+            x, tau, c = (delayed_samples(sig.u[:, k], delays[k], dt, sig.intersample[k]), 0.0,
+                         k + 1)
         else:
-            x, tau = jnp.ones(T), jnp.asarray(0.0)
+            x, tau, c = jnp.ones(T), jnp.asarray(0.0), None
         weights.append(legendre_weights(static.degree, h, dt, rule, tau, static.length))
         signals.append(x)
+        shifts.append(0.0 if levels is None or c is None else levels[c])
     x, W = jnp.stack(signals), jnp.stack(weights)
-    Mom = _fft_modulate(x, W)  # (T, sources * Q)
+    Mom = _fft_modulate(x - jnp.stack(shifts)[:, None], W)  # (T, sources * Q)
     span = h + (jnp.max(delays) if delays.shape[0] else 0.0)
     # the Gram integral sums the valid samples of each identification window [start, end)
     first = support_samples(span, dt)

@@ -67,7 +67,15 @@ def daisy(name: str, *, path=None, offset: bool = True, output: str | None = Non
     if name not in DAISY:
         raise ValueError(f"daisy(): unknown dataset {name!r}; use one of {sorted(DAISY)}")
     folder, file, cols, out, inputs, dt, inter, _ = DAISY[name]
-    data = read_csv(_locate(folder, file, path), names=cols)
+    where = _locate(folder, file, path)
+    try:
+        data = read_csv(where, names=cols)
+    except ValueError as err:  # read_csv's message names --names, a CLI flag
+        if "fields but" not in str(err):
+            raise
+        raise ValueError(f"daisy(): {where} does not have the {len(cols)} columns of {name} "
+                         f"({', '.join(cols)}): {str(err).split(': ', 1)[-1].split(' but ')[0]}"
+                         f"; check path= (the file {file} of DaISy's {folder})") from None
     out = output or out
     outputs = [c for c in cols if c not in inputs and c not in ("t", "k")]
     if out not in outputs:  # the time or sample-index column is no output
