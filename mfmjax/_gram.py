@@ -131,7 +131,7 @@ def signal_levels(signals: Signals):
     r"""(K + 1,) the constants removed from the output and from each input before they are
     modulated when the model has an offset term (their means; no gradient, any constant is
     exact): with the offset column in the model, $y = y' + c_y$, $u_k = u_k' + c_k$ only move
-    the offset ($	heta_{off}' = 	heta_{off} - c_y a_0 + \sum_k c_k b_{k0}$, `level_vector`),
+    the offset ($\theta_{off}' = \theta_{off} - c_y a_0 + \sum_k c_k b_{k0}$, `level_vector`),
     and the Gram of the centred columns keeps the signals' variation: with a level of 1e4
     its $y_0$, $u_{k0}$ and offset columns were collinear to 1e-8 and the solve returned
     coefficients 1e-4 off (8e-3 at n = 3; a level of 1e6: 100 % off), status ok."""
@@ -140,7 +140,7 @@ def signal_levels(signals: Signals):
 
 
 def level_vector(levels, b_starts, p: int):
-    r"""(p,) $l$ with $	heta_{off}' = 	heta_{off} + l^T	heta$ for the centred columns
+    r"""(p,) $l$ with $\theta_{off}' = \theta_{off} + l^T\theta$ for the centred columns
     (`signal_levels`): $-c_y$ at $a_0$, $+c_k$ at $b_{k0}$ (`b_starts`, static), 0 elsewhere
     (the offset last)."""
     return jnp.zeros(p).at[0].set(-levels[0]).at[np.asarray(b_starts, int)].set(levels[1:])
