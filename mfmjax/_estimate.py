@@ -626,6 +626,13 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         # said in `Estimate.holdout`'s keys
         stalled = {id(m) for v in sv_fits if v is not None for f in v if not bool(f.converged)
                    for m in (f.model,)}
+
+        def unsettled(x) -> bool:  # a SRIVC entry whose fit stopped unconverged on a fold: its
+            # fold models are iterates (often the MFM start itself), not the consistent
+            # estimator, so they get no preference over MFM, no BIC tie and no fallback (a
+            # stalled SRIVC equal to its MFM start tied MFM and took SRIVC's stage)
+            return x[3] == "srivc" and any(id(m) in stalled for m in x[4])
+
         live = [k for k, v in enumerate(sv) if v is not None]
         sv_score = dict(zip(live, hold_scores([(cand[k][0], sv[k]) for k in live])))
         for k, (r, i) in enumerate(cand):
@@ -638,9 +645,10 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         # a larger structure must beat a smaller one by Akaike's FPE factor (parsimony), and
         # SRIVC structures within the hold-out's resolution are told apart by their BIC
         key = lambda x: parsimonious(x[0], x[4][0], min(n_hold))  # noqa: E731
-        best = [min(t, key=lambda x: key(x) / ((1 - POLISH_GAIN) if x[3] == "mfm" else 1.0))
-                for t in tried]
-        best = [b if b[3] == "mfm" else near_tie_by_bic(t, key) for b, t in zip(best, tried)]
+        best = [min(t, key=lambda x: key(x) / ((1 - POLISH_GAIN) if x[3] == "mfm" or
+                                                unsettled(x) else 1.0)) for t in tried]
+        best = [b if b[3] == "mfm" or unsettled(b) else near_tie_by_bic(
+            [x for x in t if not unsettled(x)], key) for b, t in zip(best, tried)]
         if polish is not False:
             bases = [b[4] if b[3] == "srivc" else [stabilised(x.best(b[2], device=False))[0]
                                                    for x in sels[r].fitted]
@@ -666,8 +674,8 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
                                              shift=shift)))
         # SRIVC that did not converge on all estimation data: the next SRIVC candidate in the
         # hold-out ranking that converges replaces it (at most FALLBACKS tries per record)
-        ranked = [sorted((x for x in t if x[3] == "srivc" and x[2] != best[r][2]), key=key)
-                  for r, t in enumerate(tried)]
+        ranked = [sorted((x for x in t if x[3] == "srivc" and x[2] != best[r][2]
+                          and not unsettled(x)), key=key) for r, t in enumerate(tried)]
         fell = {}
         for attempt in range(FALLBACKS if rescue else 0):
             redo = [r for r in sv_rec if methods[r] == "srivc" and len(ranked[r]) > attempt

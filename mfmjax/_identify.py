@@ -27,7 +27,14 @@ from ._modulating import ModulatingFunction, as_values
 from ._pytree import build, replace_fields
 from ._quadrature import edge_padded, record_bucket
 from ._signals import Signals, dependent_inputs
-from ._solve import DEAD_COLUMN_RTOL, centred_eta, constrained_solve, finish_solve, uncentred
+from ._solve import (
+    DEAD_COLUMN_RTOL,
+    centred_eta,
+    constrained_solve,
+    default_eta,
+    finish_solve,
+    uncentred,
+)
 from ._status import Status, describe
 from ._structure import Structure
 
@@ -62,7 +69,7 @@ def _check(signals: Signals, structure: Structure, mf: ModulatingFunction, eta,
             )
     p = structure.n_params + int(signals.offset)
     check_record_length(signals, mf, p, fn)
-    eta = np.ones(p) if eta is None else eta
+    eta = default_eta(p, signals.offset) if eta is None else eta
     eta = jnp.asarray(eta, dtype=jnp.float64) if not _concrete(eta) else np.asarray(eta, np.float64)
     if eta.shape != (p,):
         raise ValueError(
@@ -191,7 +198,8 @@ def identify(
     - `signals`: the experiment (`Signals`).
     - `structure`: orders (`Structure(n, m)`), m_k <= n.
     - `mf`: the modulating function (`ModulatingFunction(N, M, h)`), N, M >= n.
-    - `eta`: constraint vector, default all ones (the paper's choice).
+    - `eta`: constraint vector, default ones on a and b (the paper's choice) and 0 on the
+      offset term (`default_eta`: the estimate then does not depend on the signals' levels).
     - `delay_max`: static bound on the delays, needed only when delays are traced.
 
     **Returns:** a `Model` with a_n = 1. Problems found in the data (constant input, singular

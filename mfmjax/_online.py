@@ -447,7 +447,10 @@ def _plan_grid(config: OnlineConfig, intervals: int, delays: tuple, h: tuple | N
     span = min(config.span_bound, bound * dt / 2)
     template = _window_signals(config, np.zeros(bound), np.zeros((bound, config.n_inputs)), 0.0)
     p = config.n_max + 1 + sum(max(mk) + 1 for mk in config.m) + int(config.offset)
-    eta = None if config.eta is None else np.resize(np.asarray(config.eta), p)
+    if config.eta is not None:
+        eta = np.resize(np.asarray(config.eta), p)
+    else:  # paper mode: the paper's eta = ones (Table 1), the offset's entry too
+        eta = np.ones(p) if config.mode == "paper" else None
     window = (0.0, (L - 1) * dt)
     return plan_search(
         template, n=config.n, N=config.N, M=config.M, h=config.h if h is None else h, m=config.m,

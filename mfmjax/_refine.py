@@ -39,6 +39,7 @@ from ._pytree import replace_fields
 from ._quadrature import kernel_bucket, kernel_length
 from ._signals import Signals
 from ._simulate import forced_response
+from ._solve import default_eta
 from ._structure import Structure
 
 SETTINGS = ("h", "N", "M", "delays")
@@ -82,7 +83,7 @@ def scores(
     structure = structure.for_inputs(signals.n_inputs)
     v0, length, ob = validation_window(signals, validate, observer_window, structure.n, "scores")
     p = structure.n_params + int(signals.offset)
-    eta = _value(np.ones(p) if eta is None else eta)
+    eta = _value(default_eta(p, signals.offset) if eta is None else eta)
     if eta.shape != (p,):
         raise ValueError(f"scores(): eta must have {p} entries, got shape {eta.shape}")
     delays = signals.delays if delays is None else _value(delays)
@@ -273,7 +274,8 @@ def refine(
         signals=padded, lengths=(np.int32(ob), end, valid),
         x0={k: device(v, np.float64) for k, v in x0.items()},
         lo={k: device(box[k][0], np.float64) for k in vary},
-        hi={k: device(box[k][1], np.float64) for k in vary}, eta=device(np.ones(p)),
+        hi={k: device(box[k][1], np.float64) for k in vary},
+        eta=device(default_eta(p, signals.offset)),
         start=device(v0, np.int32), structure=start.structure, vary=tuple(vary),
         kernel=kernel_bucket(kernel_length(max(_kernel_span(box, vary, start), _span), dt)),
         window=bound, key={"E": "E", "J": "J_rel"}[score],

@@ -40,7 +40,7 @@ def check_gram(fn: str, G, eta, active=None) -> None:
     if not np.any(on & (eta != 0)):
         raise ValueError(f"{fn}(): eta is zero on every active column, so eta^T theta = 1 "
                          "(eq. 11) has no solution; give eta with nonzero entries (default "
-                         "all ones)")
+                         "ones)")
 
 
 def _finite_result(fn: str, theta, why: str) -> None:
@@ -124,6 +124,21 @@ def solve_status(theta, reduced_cond, finite_data):
     return status | jnp.where(reduced_cond > ILL_CONDITIONED, Status.ILL_CONDITIONED, 0)
 
 
+def default_eta(p: int, offset: bool):
+    r"""The constraint vector of eq. (11) by default: ones (the paper's choice) on a and b, and
+    0 on the offset term when there is one. The offset's raw value carries the signals' levels
+    (it is $c + a_0 L_y - \sum_k b_{k0} L_k$ for levels L), so a 1 there made the estimate
+    depend on them on noisy data: at a level of 1e4 (noise 1 % of the spread) a and b moved by
+    27 % (status ok) and search rankings changed already at 1e2. With 0 there only the offset
+    moves with the levels. The on-line identifier's paper mode keeps the paper's ones."""
+    import numpy as np
+
+    eta = np.ones(p)
+    if offset:
+        eta[-1] = 0.0
+    return eta
+
+
 def centred_eta(eta, levels):
     r"""The constraint of eq. (11) on the centred parameters (`level_vector`): $\eta^T\theta =
     \eta'^T\theta'$ with $\eta' = \eta - \eta_{off}\,l$, so the centred solve is the same
@@ -149,8 +164,8 @@ def finish_solve(theta, G, reduced_cond, n, data_ok, excited, n_max: int | None 
     `n` is a static int in the compact layout (a_0..a_n first); in the padded layout of the
     search (a block a_0..a_{n_max}, zero beyond the candidate's order) it may be traced, with
     `n_max` the static block size. `levels` (`level_vector`): G is the Gram of the centred
-    signals and `theta` in the signals' own parameters (`uncentred`): the quadratic form and
-    J_rel are those of the signals' own Gram.
+    signals and `theta` in the signals' own parameters (`uncentred`): the quadratic form is
+    the signals' own, J_rel that of the centred columns (independent of the levels).
 
     **Returns:** `(status, divisor, quad, J_rel)`.
     """
@@ -160,13 +175,13 @@ def finish_solve(theta, G, reduced_cond, n, data_ok, excited, n_max: int | None 
     a_len = n + 1 if n_max is None else n_max + 1
     an_ok = jnp.abs(an) > A_N_RTOL * jnp.max(jnp.abs(theta[:a_len]))
     status = status | jnp.where(an_ok, 0, Status.A_N_ZERO)
-    diag = jnp.diagonal(G)
-    centred = theta
-    if levels is not None:  # G = P^T G' P with P = I + e_off l^T (the offset last)
-        centred = theta.at[-1].add(levels @ theta)
-        diag = diag + 2.0 * levels * G[:, -1] + levels**2 * G[-1, -1]
+    # with `levels`, G is the centred signals' Gram and theta' = P theta (P = I + e_off l^T,
+    # the offset last) its parameters: theta' G theta' is the signals' own quadratic form, and
+    # J_rel's terms are those of the centred columns, so J_rel does not depend on the levels
+    # (with the raw columns it fell as 1 / level^2, and ranking by it depended on the level)
+    centred = theta if levels is None else theta.at[-1].add(levels @ theta)
     quad = jnp.maximum(centred @ G @ centred, 0.0)
-    terms = jnp.sum(theta**2 * diag)
+    terms = jnp.sum(centred**2 * jnp.diagonal(G))
     J_rel = jnp.sqrt(quad / jnp.where(terms > 0, terms, 1.0))
     return status, jnp.where(an_ok, an, 1.0), quad, J_rel
 

@@ -154,17 +154,19 @@ def test_real_heat_exchanger(capsys):
 @pytest.mark.skipif(not os.path.isdir(os.path.join(SHARED, "daisy-heat-exchanger")),
                     reason="shared data not present")
 def test_identify_prints_an_unstable_model_whose_validation_fails(tmp_path, capsys):
-    """The heat exchanger in kelvin, n = 2, m = 1: the model is unstable (a_0 < 0) and its
-    response overflows float64 on the validation window. The model is printed with its status
-    and the validation line says why there is no fit (before: `observe()`'s overflow error as
-    a user error, exit 2, and no model; the same for a model whose state the window cannot
-    observe)."""
+    """The heat exchanger in kelvin, n = 2, m = 0: the model is unstable (a_0 < 0) and the
+    validation window cannot use it (its response overflows float64, or its state is not
+    observable). The model is printed with its status and the validation line says why there
+    is no fit (before: `observe()`'s overflow error as a user error, exit 2, and no model).
+    (m = 1 gave the unstable model while eq. (11)'s constraint counted the offset, whose value
+    carries the kelvin level; since 2026-11-27 the default leaves it out and m = 1 fits 42.65 %
+    in kelvin as in degC.)"""
     data = np.loadtxt(os.path.join(SHARED, "daisy-heat-exchanger", "exchanger.dat"))
     path = tmp_path / "kelvin.csv"
     np.savetxt(path, np.column_stack([data[:, 0], data[:, 1], data[:, 2] + 273.15]),
                delimiter=",", header="t,q,theta", comments="", fmt="%.10g")
     assert main(["identify", str(path), "--time", "t", "--output", "theta", "--inputs", "q",
-                 "--n", "2", "--m", "1", "--N", "4", "--M", "4", "--h", "40", "--offset",
+                 "--n", "2", "--m", "0", "--N", "4", "--M", "4", "--h", "40", "--offset",
                  "--identify-window", "1,2667", "--validate-window", "2668,4000"]) == 0
     out = capsys.readouterr().out
     assert "status                unstable" in out and "a_0" in out

@@ -531,23 +531,50 @@ def test_estimate_near_ties_on_the_hold_out_are_decided_by_bic(monkeypatch):
     assert raw == [(3, (0,))] * 3, raw
 
 
-def test_estimate_recovers_when_srivc_does_not_converge(noisy):
-    """SRIVC capped at one iteration cannot meet its tolerance, on the winner nor on the
-    fallback candidates: `estimate` returns output error from SRIVC's best iterate, converged,
-    and says so in `notes` and `summary()` (never NOT CONVERGED while a stage converges)."""
+def _srivc_fails_on_all_data(monkeypatch, n_samples: int):
+    """SRIVC on all estimation data (records of `n_samples`; not on the folds' shorter fit
+    parts) reports max_iter (its result relabelled, every number its own): the stage
+    `estimate` chose did not converge where it matters."""
+    import mfmjax._estimate as est_mod
+    from mfmjax._pytree import replace_fields
+    from mfmjax._srivc import SrivcStatus
+
+    real = est_mod._staged_many
+
+    def staged(stage, records, *args, **kwargs):
+        out = real(stage, records, *args, **kwargs)
+        if stage is est_mod.srivc and all(r.n_samples == n_samples for r in records):
+            out = [None if f is None else replace_fields(
+                f, converged=np.bool_(False), status=np.int32(SrivcStatus.MAX_ITER))
+                for f in out]
+        return out
+
+    monkeypatch.setattr(est_mod, "_staged_many", staged)
+
+
+def test_estimate_recovers_when_srivc_does_not_converge(noisy, monkeypatch):
+    """SRIVC, chosen on the held-back data, does not converge on all estimation data, on the
+    winner nor on the fallback candidates: `estimate` returns output error from SRIVC's best
+    iterate, converged, and says so in `notes` and `summary()` (never NOT CONVERGED while a
+    stage converges). Where SRIVC stalls on the folds too (max_iter=1), it is no SRIVC
+    estimate: the hold-out table says so and the MFM estimate is returned (it was SRIVC's
+    stage, from entries that were their starts' scores, before 2026-11-27)."""
     import warnings
 
     sig, _ = noisy
     with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        stalled = mfmjax.estimate(sig, max_iter=1, **GRID)
+    srivc_keys = [k for k in stalled.holdout if k.startswith("srivc ")]
+    assert srivc_keys and all(k.endswith("(not converged on a fold)") for k in srivc_keys)
+    assert not any("not converged" in k for k in stalled.holdout if k.startswith("mfm "))
+    assert stalled.method == "mfm" and stalled.srivc is None
+    _srivc_fails_on_all_data(monkeypatch, sig.n_samples)
+    with warnings.catch_warnings():
         warnings.simplefilter("error")  # a converged result must not warn
-        est = mfmjax.estimate(sig, max_iter=1, **GRID)
+        est = mfmjax.estimate(sig, **GRID)
     assert est.method == "srivc + output error" and est.converged
     assert est.srivc is not None and not est.srivc.converged
-    # the hold-out table says which SRIVC scores came from fits that stopped unconverged
-    # (their best iterate: the start's score, which read as SRIVC's own before 2026-11-27)
-    srivc_keys = [k for k in est.holdout if k.startswith("srivc ")]
-    assert srivc_keys and all(k.endswith("(not converged on a fold)") for k in srivc_keys)
-    assert not any("not converged" in k for k in est.holdout if k.startswith("mfm "))
     assert est.output_error is not None and est.names == est.output_error.names
     assert any("output error from its best iterate" in note for note in est.notes)
     assert "NOT CONVERGED" not in est.summary()
@@ -556,7 +583,7 @@ def test_estimate_recovers_when_srivc_does_not_converge(noisy):
 def test_estimate_keeps_srivc_when_the_rescue_does_not_converge(noisy, monkeypatch):
     """As above, but output error is made to report "max_steps_reached" (its result relabelled,
     every number its own): the rescue is refused, SRIVC's best iterate is returned, NOT
-    CONVERGED, warned, and the note says why (glass furnace y1 in benchmarks/real_data.py is
+    CONVERGED, warned, and the note says why (glass furnace y1 in benchmarks/real_data.py was
     the real case: output error from the unconverged iterate diverged to fit -504 %)."""
     import mfmjax._estimate as est_mod
     from mfmjax._pytree import replace_fields
@@ -570,8 +597,9 @@ def test_estimate_keeps_srivc_when_the_rescue_does_not_converge(noisy, monkeypat
 
     monkeypatch.setattr(est_mod, "output_error_many", not_converged)
     sig, _ = noisy
+    _srivc_fails_on_all_data(monkeypatch, sig.n_samples)
     with pytest.warns(UserWarning, match=r"estimate\(\): srivc did not converge"):
-        est = mfmjax.estimate(sig, max_iter=1, **GRID)
+        est = mfmjax.estimate(sig, **GRID)
     assert est.method == "srivc" and not est.converged and est.output_error is None
     assert any("output error did not converge either" in note for note in est.notes)
     assert "NOT CONVERGED" in est.summary()
@@ -640,12 +668,23 @@ def test_estimate_keeps_a_converged_srivc_over_a_polish_that_does_not_converge()
     data, but on all estimation data it runs out of steps at a = (1.7e7, 7.6e7), a first-order
     model in disguise (a pole at -6.5e7, standard errors of 1e13), which `estimate` returned,
     flagged NOT CONVERGED, over a converged SRIVC fit (a practitioner's walkthrough). The
-    converged SRIVC fit is now returned, and a note says why."""
+    converged SRIVC fit is now returned, and a note says why. The MFM starts here are those of
+    eq. (11)'s constraint with the offset's entry at 1 (the default before 2026-11-27): with the
+    level-free default this wrong structure's MFM estimate is unstable and no stage converges
+    (flagged), so the scenario is set up with the old constraint."""
+    import numpy as _np
+
+    from mfmjax import _identify
+    from mfmjax._search import _grid
+
     d = np.loadtxt(os.path.join(SHARED, "daisy-heat-exchanger", "exchanger.dat"))
     sig = mfmjax.Signals(d[:, 2], d[:, 1], t=d[:, 0])
-    # n = 2, m = 0 leaves this plant's residuals correlated with its input: said and warned
-    with pytest.warns(UserWarning, match=r"residuals are correlated with the input"):
-        est = mfmjax.estimate(sig, n=(2,), m=[[0]], h=40.0, N=4, M=4)
+    with pytest.MonkeyPatch.context() as mp:
+        for module in (_identify, _grid):
+            mp.setattr(module, "default_eta", lambda p, offset: _np.ones(p))
+        # n = 2, m = 0 leaves this plant's residuals correlated with its input: said, warned
+        with pytest.warns(UserWarning, match=r"residuals are correlated with the input"):
+            est = mfmjax.estimate(sig, n=(2,), m=[[0]], h=40.0, N=4, M=4)
     assert est.method == "srivc" and est.converged and est.srivc.converged
     assert any("the converged SRIVC fit is returned" in note for note in est.notes)
     assert np.all(est.std_errors[:3] < np.abs(_params(est.model)))  # a_0, a_1, b_10: determined
@@ -819,3 +858,25 @@ def test_estimate_on_several_windows_says_its_fold_and_selection_as_they_are():
         est = mfmjax.estimate(joined, identify=list(windows), folds=2, **SMALL)
     assert "33% of the last estimation window, fitted on the rest)" in est.selection
     assert "SRIVC" not in est.selection and est.method == "mfm"
+
+
+@pytest.mark.skipif(not os.path.isdir(os.path.join(SHARED, "daisy-heating-system")),
+                    reason="DaISy heating system not present")
+def test_a_srivc_stalled_on_a_fold_gets_no_preference_over_mfm():
+    """On the DaISy heating system SRIVC from the MFM winner stops on an unstable filter on
+    both folds and returns its start: its hold-out E is the MFM candidate's own, and the tie
+    went to SRIVC's stage (the consistent estimator is preferred by 5 %), so output error from
+    SRIVC's best iterate (the MFM start) came back, never scored on the held-back data, and a
+    1e-11 change of the start flipped the choice. A SRIVC entry that did not converge on a
+    fold now competes as MFM does: the MFM estimate is returned."""
+    from mfmjax.datasets import daisy
+
+    sig = daisy("heating_system", offset=None)
+    cut = (2 * sig.n_samples) // 3
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = mfmjax.estimate(sig, identify=(sig.t0, sig.t0 + (cut - 1) * sig.dt), folds=2,
+                              n=(3,), m=[[1]], N=(5,), M=(5,), h=(40,), delays=[(4,)])
+    stalled = est.holdout["srivc n=3 m=[1] (not converged on a fold)"]
+    assert stalled == est.holdout["mfm n=3 m=[1]"]  # the start itself: a tie
+    assert est.method == "mfm" and est.holdout["chosen: mfm"] == stalled

@@ -25,6 +25,7 @@ from .._quadrature import (
     record_bucket,
 )
 from .._signals import Signals
+from .._solve import default_eta
 
 SCORES = ("E", "J", "fit", "aic", "bic")
 
@@ -244,7 +245,8 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
         raise ValueError(f"search(): the validation window ({v_len} samples) must fit "
                          f"v_bound={v_bound} and the record the padded one ({T_pad} samples)")
     p = p_needed
-    eta = jax.device_put(np.ones(p)) if eta is None else jnp.asarray(eta, dtype=jnp.float64)
+    eta = jax.device_put(default_eta(p, signals.offset)) if eta is None else jnp.asarray(
+        eta, dtype=jnp.float64)
     if eta.shape != (p,):
         raise ValueError(f"search(): eta must have {p} entries (padded layout)")
     # moment sources and the Legendre coefficients of every column for every (N, M)
