@@ -418,10 +418,15 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
     w = max(model.m, default=0) + 1
     c = padded.padded_model(model, model.n, w - 1)
     fit = _fit(signals, model, padded_fit(signals, c, max_iter=max_iter, tol=tol), (model.n, w))
+    away = [] if traced else _not_at_rest(signals)
+    at_rest = not away
+    if away and int(fit.status) == 0:  # converged, and maybe to a wrong model: an input at a
+        # level of 100 (the output at rest) gave a = [5.8, 7.6, 1] for [2, 3, 1], status ok
+        warnings.warn(f"srivc(): the filters start from rest at the first sample, and the "
+                      f"signals do not ({away}): the start-up transient biases the fit, "
+                      "converged or not; shift the record by its first samples (y - y[0], "
+                      "u - u[0], as estimate does; see srivc's docstring)", stacklevel=2)
     if not traced and int(fit.status) != 0:
-        y = np.asarray(signals.y)
-        y0, span = float(np.mean(y[:10])), float(np.ptp(y))
-        at_rest = abs(y0) <= 0.1 * span  # else the filters' start from rest leaves a transient
         zero = [name for name, uk in zip(signals.input_names, np.asarray(signals.u).T)
                 if not np.any(uk)]
         dead = int(fit.status) & SrivcStatus.NO_EXCITATION
@@ -436,11 +441,26 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
                          if dead else
                          "Check the start model and the data, or raise max_iter")
                       + ("" if at_rest else
-                         f"; the filters start from rest at the first sample, and the output "
-                         f"starts at {y0:.4g} (its range: {span:.3g}): shift the record by its "
-                         "first samples (y - y[0], u - u[0], as estimate does; see srivc's "
-                         "docstring)"), stacklevel=2)
+                         f"; the filters start from rest at the first sample, and the signals "
+                         f"do not ({away}): shift the record by its first samples (y - y[0], "
+                         "u - u[0], as estimate does; see srivc's docstring)"), stacklevel=2)
     return fit
+
+
+def _not_at_rest(signals: Signals) -> str:
+    """The signals that start away from rest, as "y starts at 96.9 (range 3.1), ..." ('' when
+    none does): the output's first samples (mean of 10) more than 0.1 of its range from zero
+    (a plant at rest there has a zero output), an input's more than its whole range (an
+    operating level: an input that opens at a value of its own range is an experiment from
+    rest, as a step at the first sample)."""
+    cols = [(signals.output_name, np.asarray(signals.y), 0.1)] + [
+        (name, uk, 1.0) for name, uk in zip(signals.input_names, np.asarray(signals.u).T)]
+    out = []
+    for name, x, share in cols:
+        x0, span = float(np.mean(x[:10])), float(np.ptp(x))
+        if abs(x0) > share * span:
+            out.append(f"{name} starts at {x0:.4g} (range {span:.3g})")
+    return ", ".join(out)
 
 
 def _checked(signals: Signals, model: Model, max_iter, tol):

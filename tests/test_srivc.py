@@ -381,9 +381,23 @@ def test_warning_says_to_shift_a_record_that_starts_away_from_rest():
     _, sig, start = _record()
     level = Signals(np.asarray(sig.y) + 50.0, sig.u, dt=DT, intersample=MODES,
                     delays=WHOLE, offset=True)
-    with pytest.warns(UserWarning, match=r"output starts at 5\d\.\d+ .*shift the record by its "
+    with pytest.warns(UserWarning, match=r"y starts at 5\d\.\d+ .*shift the record by its "
                       r"first samples"):
         mfmjax.srivc(level, start, max_iter=1)
+    # converged and away from rest: an input at a level of 100 (the output at rest, an offset
+    # term) converges to a = [5.8, 7.6, 1] for [2, 3, 1], status ok, and nothing was said
+    t = np.arange(3000) * 0.05
+    u = sum(a * np.sin(w * t + p) for a, w, p in ((0.8, 0.3, 1.0), (0.5, 1.1, 2.0),
+                                                    (0.4, 0.07, 0.5)))
+    true = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[2.0, 0.5]], offset=0.0)
+    y = np.asarray(mfmjax.simulate(true, u[:, None], [0.3, -0.2], dt=0.05))
+    lifted = Signals(y, u + 100.0, dt=0.05, offset=True)
+    begin = mfmjax.Model.from_coefficients([2.2, 2.7, 1.0], [[1.8, 0.6]], offset=0.05 - 180.0)
+    with pytest.warns(UserWarning, match=r"srivc\(\): the filters start from rest at the first "
+                      r"sample, and the signals do not \(u1 starts at 10\d\.\d+") as got:
+        fit = mfmjax.srivc(lifted, begin)
+    assert bool(fit.converged) and len(got) == 1
+    assert np.max(np.abs(np.asarray(fit.model.a) - [2.0, 3.0, 1.0])) > 0.1  # the bias said
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         mfmjax.srivc(sig, start, max_iter=1)
