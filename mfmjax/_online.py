@@ -90,7 +90,8 @@ class OnlineConfig(eqx.Module):
       N in {3, 5}, M in {4, 6}, h in {50, 100}: 64 candidates).
     - `delays`: known input delays; `intersample`, `smooth`, `output_rule`, `offset` (a constant
       term in the model, default True: plant data are not deviation variables), `eta`: as in
-      `Signals` / `search`.
+      `Signals` / `search` (default: ones with the offset left out, `default_eta`; paper
+      mode: the paper's ones, the offset included).
     - `steady_rel`: an interval is steady when each signal's variance over it is below
       `steady_rel` times that signal's variance over all valid intervals so far; `steady_var`
       (output, then each input) replaces this by absolute thresholds.
