@@ -113,13 +113,13 @@ def identify_core(signals, structure, mf, eta, length: int, end=None,
     values are non-finite: those bits already say the coefficients are no model."""
     K = signals.n_inputs
     n = structure.n
-    levels = None  # with an offset term the columns are those of the centred signals
+    means = levels = None  # with an offset term the columns are those of the centred signals
     if signals.offset:
+        means = signal_levels(signals)
         starts = np.cumsum([n + 1] + [mk + 1 for mk in structure.m])[:K]
-        levels = level_vector(signal_levels(signals), starts, structure.n_params + 1)
+        levels = level_vector(means, starts, structure.n_params + 1)
         eta = centred_eta(eta, levels)
-    ms = modulated_columns(signals, structure, mf, length, end,
-                           None if levels is None else signal_levels(signals))
+    ms = modulated_columns(signals, structure, mf, length, end, means)
     G = gram_matrix(ms)
     alive = jnp.sqrt(jnp.maximum(jnp.diagonal(G), 0.0)) > DEAD_COLUMN_RTOL * ms.bounds
     alive = alive & ~steady_input_columns(ms.excited, n + 1, [mk + 1 for mk in structure.m],

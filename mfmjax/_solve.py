@@ -72,6 +72,13 @@ def closed_form(G, eta):
     return theta
 
 
+def _solve_shapes(G, eta, active) -> None:
+    G, eta, active = (jnp.shape(x) for x in (G, eta, active))
+    if len(G) != 2 or G[0] != G[1] or eta != G[:1] or active != G[:1]:
+        raise ValueError(f"constrained_solve(): G must be square (p, p), eta and active (p,); "
+                         f"got G {G}, eta {eta} and active {active}")
+
+
 def constrained_solve(G, eta, active, conditioning: bool = True):
     r"""Production solve of eq. (11): equilibrated KKT system, well defined for singular G.
 
@@ -90,10 +97,7 @@ def constrained_solve(G, eta, active, conditioning: bool = True):
     require_x64("constrained_solve")
     G, eta, active = (jnp.asarray(G, jnp.float64), jnp.asarray(eta, jnp.float64),
                       jnp.asarray(active, dtype=bool))
-    if G.ndim != 2 or G.shape[0] != G.shape[1] or eta.shape != G.shape[:1] \
-            or active.shape != G.shape[:1]:
-        raise ValueError(f"constrained_solve(): G must be square (p, p), eta and active (p,); "
-                         f"got G {G.shape}, eta {eta.shape} and active {active.shape}")
+    _solve_shapes(G, eta, active)
     p = G.shape[0]
     diag = jnp.diagonal(G)
     d = jnp.where(active & (diag > 0), 1.0 / jnp.sqrt(jnp.where(diag > 0, diag, 1.0)), 1.0)
@@ -191,11 +195,7 @@ def public_constrained_solve(G, eta, active, conditioning: bool = True):
     """`constrained_solve` as one compiled program, its concrete arguments checked
     (`check_gram`) and a result that is not finite refused (eager; traced: NaN)."""
     require_x64("constrained_solve")
-    shapes = [jnp.shape(x) for x in (G, eta, active)]
-    if len(shapes[0]) != 2 or shapes[0][0] != shapes[0][1] or shapes[1] != shapes[0][:1] \
-            or shapes[2] != shapes[0][:1]:
-        raise ValueError(f"constrained_solve(): G must be square (p, p), eta and active (p,); "
-                         f"got G {shapes[0]}, eta {shapes[1]} and active {shapes[2]}")
+    _solve_shapes(G, eta, active)
     check_gram("constrained_solve", G, eta, active)
     out = _solve_program(G, eta, active, conditioning)
     _finite_result("constrained_solve", out[0], "G is zero (or not finite) on the active "
