@@ -1,6 +1,6 @@
 """mfmjax's XLA compile options against XLA's defaults: compile time and warm run time per entry point.
 
-    python benchmarks/compile_options.py [--repeats 2]
+    python benchmarks/compile_options.py [--repeats 2] [--xla-flags FLAGS ...] [--json PATH]
 
 mfmjax compiles its programs with `xla_cpu_use_fusion_emitters=False` (`mfmjax/_jit.py`);
 `MFMJAX_XLA_DEFAULTS=1` compiles them with XLA's own defaults. Each (setting, repeat) is a fresh
@@ -10,6 +10,8 @@ XLA compile time summed from JAX's monitoring events, and wall time) and then `W
 `mfmjax.datasets`): `identify`, `search` (248 candidates, n 1..4), `simulate`, `observe`, `srivc`,
 `output_error`, `estimate` (two orders, one (N, M, h)). Prints the table and the ratios
 (options / defaults; < 1 is better) and saves benchmarks/results/compile_options.json.
+`--xla-flags` adds a setting per string: mfmjax's options with `XLA_FLAGS` set to it for the
+whole process (e.g. "--xla_backend_optimization_level=0"), compared with mfmjax's options.
 """
 
 from __future__ import annotations
@@ -86,22 +88,27 @@ def _ratio(a: float, b: float) -> str:
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--xla-flags", nargs="*", default=[], metavar="FLAGS")
+    ap.add_argument("--json", default=os.path.join(HERE, "results", "compile_options.json"))
     ap.add_argument("--child", action="store_true")
     args = ap.parse_args()
     if args.child:
         print(json.dumps(child()))
         return
-    runs = {k: [] for k in SETTINGS}
+    settings = {label: (flag, "") for label, flag in SETTINGS.items()}
+    settings.update({flags: ("0", flags) for flags in args.xla_flags})
+    runs = {k: [] for k in settings}
     for rep in range(args.repeats):
-        for label, flag in SETTINGS.items():  # alternate: the machine's load drifts
-            env = dict(os.environ, MFMJAX_XLA_DEFAULTS=flag, MFMJAX_NO_COMPILE_CACHE="1")
+        for label, (flag, xla_flags) in settings.items():  # alternate: the load drifts
+            env = dict(os.environ, MFMJAX_XLA_DEFAULTS=flag, MFMJAX_NO_COMPILE_CACHE="1",
+                       XLA_FLAGS=xla_flags)
             env.pop("JAX_COMPILATION_CACHE_DIR", None)
             res = subprocess.run([sys.executable, __file__, "--child"], env=env, check=True,
                                  capture_output=True, text=True)
             runs[label].append(json.loads(res.stdout.strip().splitlines()[-1]))
             print(f"  repeat {rep + 1}: {label} done", flush=True)
-    os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
-    out = os.path.join(HERE, "results", "compile_options.json")
+    out = args.json
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     with open(out, "w") as fh:  # raw runs first: the table below is derived from them
         json.dump(dict(repeats=args.repeats, warm_calls=WARM, runs=runs), fh, indent=1)
     names = list(runs["mfmjax options"][0])
@@ -122,6 +129,15 @@ def main():
     tot = {label: sum(m[n]["first_s"] for n in names) for label, m in med.items()}
     print(f"{'all first calls':14s} | {'':17s} | {tot['mfmjax options']:7.2f} "
           f"{tot['XLA defaults']:9.2f} | ratio {tot['mfmjax options'] / tot['XLA defaults']:.2f}")
+    for flags in args.xla_flags:  # each against mfmjax's options without it
+        x = med[flags]
+        comp = {label: sum(m[n]["compile_s"] for n in names) for label, m in
+                ((flags, x), ("mfmjax options", a))}
+        print(f"\nXLA_FLAGS={flags!r} / without (compile; warm per entry point): "
+              f"all compiles {comp[flags]:.2f} / {comp['mfmjax options']:.2f} s = "
+              f"{_ratio(comp[flags], comp['mfmjax options'])}; " + ", ".join(
+                  f"{n} {_ratio(x[n]['compile_s'], a[n]['compile_s'])} / "
+                  f"{_ratio(x[n]['warm_ms'], a[n]['warm_ms'])}" for n in names))
     with open(out, "w") as fh:
         json.dump(dict(repeats=args.repeats, warm_calls=WARM, runs=runs, median=med), fh, indent=1)
 

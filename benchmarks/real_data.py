@@ -81,9 +81,18 @@ def mfmjax_fit(name: str) -> dict:
                            delays=[float(d) for d in np.asarray(est.model.delays)],
                            offset=bool(est.model.has_offset), method=est.method,
                            converged=bool(est.converged),
-                           holdout_fit=est.holdout.get(f"chosen: {est.method}")))
+                           **_chosen(est.holdout)))
     return dict(fit=fits, fit_mean=float(np.mean(fits)), cold_s=times[0], warm_s=times[1],
                 structure=chosen)
+
+
+def _chosen(holdout: dict) -> dict:
+    """The stage `estimate` chose on the held-back data and its fit there (a rescue returns
+    output error from SRIVC's best iterate: the stage is then "srivc", not the method)."""
+    for key, value in holdout.items():
+        if key.startswith("chosen: "):
+            return dict(holdout_stage=key[len("chosen: "):], holdout_fit=value)
+    return dict(holdout_stage=None, holdout_fit=None)
 
 
 def mfmjax_fit_fresh(name: str) -> dict:

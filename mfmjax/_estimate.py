@@ -716,6 +716,10 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
                     and fits[r].converged:  # a converged fit over an unconverged polish
                 methods[r] = "srivc"
                 del oes[r]
+                # its hold-out entry and score are SRIVC's again (they were the polish's,
+                # which then also decided `_holdout_variants` for a model it did not return)
+                best[r] = next((x for x in tried[r] if x[3] == "srivc" and x[2] == best[r][2]),
+                               best[r])
                 fell[r] = ("the output-error polish, chosen on the held-back data, did not "
                            "converge on all estimation data: the converged SRIVC fit is "
                            "returned")
@@ -725,7 +729,9 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         held = {f"{x[3]} n={x[4][0].n} m={list(x[4][0].m)}" + (
             " (not converged on a fold)" if any(id(m) in stalled for m in x[4]) else ""): x[1]
             for x in tr}
-        held[f"chosen: {method}"] = b[1]
+        # the stage chosen on the held-back data, with its fit there: where a rescue returns
+        # output error from SRIVC's best iterate (`notes`), that stage is SRIVC's
+        held[f"chosen: {b[3]}"] = b[1]
         fit, oe, start = fits.get(r), oes.get(r), starts[r]
         model, names, cov, converged, notes = start, (), None, True, ()
         if fit is not None:

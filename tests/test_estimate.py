@@ -578,6 +578,13 @@ def test_estimate_recovers_when_srivc_does_not_converge(noisy, monkeypatch):
     assert est.output_error is not None and est.names == est.output_error.names
     assert any("output error from its best iterate" in note for note in est.notes)
     assert "NOT CONVERGED" not in est.summary()
+    # the hold-out table's "chosen" entry is the stage chosen there, SRIVC, with its fit: the
+    # rescue's output error was never scored on the held-back data (it was labelled "chosen:
+    # srivc + output error" beside SRIVC's number)
+    chosen = [k for k in est.holdout if k.startswith("chosen: ")]
+    winner = f"srivc n={est.start.n} m={list(est.start.m)}"
+    assert chosen == ["chosen: srivc"], est.holdout
+    assert est.holdout["chosen: srivc"] == est.holdout[winner]
 
 
 def test_estimate_keeps_srivc_when_the_rescue_does_not_converge(noisy, monkeypatch):
@@ -687,6 +694,9 @@ def test_estimate_keeps_a_converged_srivc_over_a_polish_that_does_not_converge()
             est = mfmjax.estimate(sig, n=(2,), m=[[0]], h=40.0, N=4, M=4)
     assert est.method == "srivc" and est.converged and est.srivc.converged
     assert any("the converged SRIVC fit is returned" in note for note in est.notes)
+    # its hold-out entry is SRIVC's: it held the polish's fit (which `_holdout_variants` then
+    # compared with the other data shift as if it were the returned model's)
+    assert est.holdout["chosen: srivc"] == est.holdout["srivc n=2 m=[0]"], est.holdout
     assert np.all(est.std_errors[:3] < np.abs(_params(est.model)))  # a_0, a_1, b_10: determined
 
 
