@@ -1,6 +1,6 @@
 """mfmjax's XLA compile options against XLA's defaults: compile time and warm run time per entry point.
 
-    python benchmarks/compile_options.py [--repeats 2] [--xla-flags FLAGS ...] [--json PATH]
+    python benchmarks/compile_options.py [--repeats 2] [--xla-flags=FLAGS ...] [--json PATH]
 
 mfmjax compiles its programs with `xla_cpu_use_fusion_emitters=False` (`mfmjax/_jit.py`);
 `MFMJAX_XLA_DEFAULTS=1` compiles them with XLA's own defaults. Each (setting, repeat) is a fresh
@@ -10,7 +10,7 @@ XLA compile time summed from JAX's monitoring events, and wall time) and then `W
 `mfmjax.datasets`): `identify`, `search` (248 candidates, n 1..4), `simulate`, `observe`, `srivc`,
 `output_error`, `estimate` (two orders, one (N, M, h)). Prints the table and the ratios
 (options / defaults; < 1 is better) and saves benchmarks/results/compile_options.json.
-`--xla-flags` adds a setting per string: mfmjax's options with `XLA_FLAGS` set to it for the
+`--xla-flags=FLAGS` (repeatable) adds a setting per string: mfmjax's options with `XLA_FLAGS` set to it for the
 whole process (e.g. "--xla_backend_optimization_level=0"), compared with mfmjax's options.
 """
 
@@ -88,7 +88,7 @@ def _ratio(a: float, b: float) -> str:
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=2)
-    ap.add_argument("--xla-flags", nargs="*", default=[], metavar="FLAGS")
+    ap.add_argument("--xla-flags", action="append", default=[], metavar="FLAGS")
     ap.add_argument("--json", default=os.path.join(HERE, "results", "compile_options.json"))
     ap.add_argument("--child", action="store_true")
     args = ap.parse_args()
