@@ -543,9 +543,11 @@ def test_identify_and_search_refine(csv_file, capsys, tmp_path):
     on_window = float(mfmjax.observe(best, sig.window(0.0, 12.0)).E)
     assert out["refined"]["E_mfm"] == pytest.approx(on_window, rel=1e-9)
     assert abs(float(mfmjax.observe(best, sig).E) - on_window) > 1e-3 * on_window
+    # the text report of the same job (its programs are those of the JSON run above)
     assert main(["search", str(csv_file), "--output", "temp", "--inputs", "u1,u2", "--time", "t",
                  "--intersample", "foh,zoh", "--n", "3", "--m", "1;0", "--N", "4", "--M", "5",
-                 "--h", "2.0", "--refine"]) == 0
+                 "--h", "2.0", "--identify-window", "0,12", "--validate-window", "12.5,19.99",
+                 "--refine"]) == 0
     text = capsys.readouterr().out
     assert "refined settings" in text and "std. error" in text and "output error" in text
 
