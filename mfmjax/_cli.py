@@ -387,6 +387,10 @@ def _check_outputs(args) -> None:
     if getattr(args, "save", None):
         _writable_folder("--save", args.save)
     if getattr(args, "plot", None):
+        if os.path.isdir(args.plot) or args.plot.endswith(("/", os.sep)):  # matplotlib wrote
+            # the hidden file FOLDER/.png.png while the JSON named FOLDER/.png
+            raise _UserError(f"--plot {args.plot}: it is a folder; give a file name, e.g. "
+                             f"{os.path.join(args.plot, 'validation.png')}")
         if not os.path.splitext(args.plot)[1]:
             args.plot += ".png"  # what matplotlib writes; the JSON said "out" for out.png
         _writable_folder("--plot", args.plot)
@@ -513,20 +517,28 @@ def _cmd_identify(args):
 
 
 def _refine_report(sig, model, vary_delays: bool) -> dict:
-    """refine (h, N, M[, delays]) by BFGS on E, then output-error LM on the parameters."""
+    """refine (h, N, M[, delays]) by BFGS on E, then output-error LM on the parameters; E of
+    eq. 17 of the three models (NaN for a model whose state cannot be observed on the data,
+    e.g. an unstable one: the report was lost to an error that advised a shorter window)."""
     import mfmjax
+
+    def E(m) -> float:
+        try:
+            return float(mfmjax.performance_index(m, sig))
+        except ValueError:
+            return float("nan")
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         vary = ("h", "N", "M") + (("delays",) if vary_delays else ())
         r = mfmjax.refine(sig, model, vary=vary)
         oe = mfmjax.output_error(sig, r.model)
-        E0 = float(mfmjax.performance_index(model, sig))
-        E1 = float(mfmjax.performance_index(r.model, sig))
     return {
         "model": oe.model, "settings": r.settings, "start_settings": r.start_settings,
-        "refine_result": r.result, "refine_steps": r.steps, "E_mfm": E0, "E_refined": E1,
-        "E_output_error": oe.E, "output_error_result": oe.result,
+        "refine_result": r.result, "refine_steps": r.steps, "E_mfm": E(model),
+        # eq. 17 as the two before it (output error's own criterion, its fitted x0's squared
+        # residuals, was printed under that name)
+        "E_refined": E(r.model), "E_output_error": E(oe.model), "output_error_result": oe.result,
         "output_error_converged": oe.converged, "output_error_stabilised": oe.stabilised,
         "parameters": {name: {"value": float(v), "std_error": float(e)}
                        for name, v, e in zip(oe.names, oe.theta, oe.std_errors)},
@@ -539,9 +551,13 @@ def _print_report(rep: dict) -> None:
     delays = ",".join(f"{d:.4g}" for d in s["delays"]) if s["delays"] else "-"
     print(f"\nrefined settings (BFGS on E: {rep['refine_result']}, {rep['refine_steps']} steps): "
           f"N={s['N']:.4g} M={s['M']:.4g} h={s['h']:.5g} delays={delays}")
-    print(f"E (eq. 17) on the data fitted, the state observed over all of them: MFM "
-          f"{rep['E_mfm']:.6g} -> refined settings {rep['E_refined']:.6g} -> "
-          f"output error {rep['E_output_error']:.6g} ({rep['output_error_result']})")
+    E = [f"{rep[k]:.6g}" if math.isfinite(rep[k]) else "undefined"
+         for k in ("E_mfm", "E_refined", "E_output_error")]
+    print(f"E (eq. 17) on the data fitted, the state observed over all of them: MFM {E[0]} -> "
+          f"refined settings {E[1]} -> output error {E[2]} ({rep['output_error_result']})")
+    if "undefined" in E:
+        print("note: E is undefined where the model's state cannot be observed on the data "
+              "(an unstable model: see its status)")
     if not rep["output_error_converged"]:
         print(f"WARNING: output error NOT CONVERGED ({rep['output_error_result']}); the parameters "
               "below are its best iterate and their standard errors are not trustworthy")

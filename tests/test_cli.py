@@ -522,6 +522,11 @@ def test_identify_and_search_refine(csv_file, capsys, tmp_path):
     assert set(ref["settings"]) == {"h", "N", "M", "delays"}
     assert ref["refine_result"] in ("successful", "max_steps_reached")
     assert ref["E_output_error"] <= ref["E_mfm"] * (1 + 1e-9)
+    # E of eq. 17 like the two before it (output error's own criterion was printed there)
+    sig_all = mfmjax.Signals.from_csv(csv_file, output="temp", inputs=["u1", "u2"], time="t",
+                                      intersample=("foh", "zoh"))
+    assert ref["E_output_error"] == pytest.approx(
+        float(mfmjax.performance_index(kept, sig_all)), rel=1e-9, abs=0)
     assert set(ref["parameters"]) == {"a_0", "a_1", "a_2", "b_10", "b_11", "b_20"}
     for p in ref["parameters"].values():
         assert p["std_error"] >= 0 and np.isfinite(p["value"])
@@ -550,6 +555,46 @@ def test_identify_and_search_refine(csv_file, capsys, tmp_path):
                  "--refine"]) == 0
     text = capsys.readouterr().out
     assert "refined settings" in text and "std. error" in text and "output error" in text
+
+
+def test_refine_of_an_unstable_estimate_reports_instead_of_failing(tmp_path, capsys):
+    """`identify --refine` on a record whose MFM estimate is unstable (a plant with a pole at
+    +0.05; 200 s: the output grows 1e8-fold) exited 2 with observe()'s "not observable ...
+    shorten the window" (E of the unstable models, which no window given could fix) and
+    printed nothing; the report now comes, E undefined where it is, and output error (which
+    mirrors the unstable poles) gives its model."""
+    import mfmjax
+
+    plant = mfmjax.Model.from_coefficients([-0.1, 1.0, 1.0], [[1.0]])
+    t = np.arange(2000) * 0.1
+    u = np.sin(1.3 * t) + 0.5 * np.sign(np.sin(0.4 * t))
+    y = np.asarray(mfmjax.simulate(plant, u[:, None], dt=0.1))
+    path = tmp_path / "unstable.csv"
+    path.write_text("t,y,u\n" + "".join(f"{float(a)!r},{float(b)!r},{float(c)!r}\n"
+                                         for a, b, c in zip(t, y, u)))
+    argv = ["identify", str(path), "--time", "t", "--output", "y", "--inputs", "u", "--n", "2",
+            "--m", "0", "--N", "3", "--M", "3", "--h", "2.0", "--refine"]
+    assert main([*argv, "--json"]) == 0
+    ref = json.loads(capsys.readouterr().out)["refined"]
+    assert ref["E_mfm"] is None and ref["output_error_stabilised"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "E (eq. 17) on the data fitted, the state observed over all of them: MFM undefined" \
+        in out and "an unstable model" in out
+
+
+def test_plot_to_a_folder_is_refused(csv_file, tmp_path, capsys):
+    """`validate --plot FOLDER/` was accepted: the JSON named FOLDER/.png and matplotlib wrote
+    the hidden file FOLDER/.png.png."""
+    model_path = tmp_path / "model.json"
+    assert main(["identify", str(csv_file), *ARGS, "--save", str(model_path)]) == 0
+    capsys.readouterr()
+    for folder in (str(tmp_path), str(tmp_path) + os.sep):
+        assert main(["validate", str(csv_file), "--output", "temp", "--time", "t", "--inputs",
+                     "u1,u2", "--model", str(model_path), "--plot", folder]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"error: --plot {folder}: it is a folder; give a file name"), err
+    assert not list(tmp_path.glob(".png*"))
 
 
 def test_output_paths_are_checked_before_the_command_runs(csv_file, tmp_path, capsys):
