@@ -21,6 +21,7 @@ from ._boundary import require_x64
 from ._jit import jit
 from ._modulating import ModulatingFunction, as_values, phi_scaled
 from ._quadrature import (
+    EDGE,
     delayed_samples,
     gregory_weights,
     kernel_bucket,
@@ -127,16 +128,43 @@ def modulated_signals(
     return _modulated_program(Signals.unlabelled(signals), structure, as_values(mf), length, end)
 
 
-def signal_levels(signals: Signals):
+def signal_levels(signals: Signals, inside=None):
     r"""(K + 1,) the constants removed from the output and from each input before they are
     modulated when the model has an offset term (their means; no gradient, any constant is
     exact): with the offset column in the model, $y = y' + c_y$, $u_k = u_k' + c_k$ only move
     the offset ($\theta_{off}' = \theta_{off} - c_y a_0 + \sum_k c_k b_{k0}$, `level_vector`),
     and the Gram of the centred columns keeps the signals' variation: with a level of 1e4
     its $y_0$, $u_{k0}$ and offset columns were collinear to 1e-8 and the solve returned
-    coefficients 1e-4 off (8e-3 at n = 3; a level of 1e6: 100 % off), status ok."""
-    return jax.lax.stop_gradient(jnp.concatenate(
-        [jnp.mean(signals.y)[None], jnp.mean(signals.u, axis=0)]))
+    coefficients 1e-4 off (8e-3 at n = 3; a level of 1e6: 100 % off), status ok. `inside`
+    (T,) bool: the means over the identification windows' samples only (the search took the
+    whole record's, validation data included, so its J_rel differed from `identify`'s on the
+    window's own record)."""
+    if inside is None:
+        means = jnp.concatenate([jnp.mean(signals.y)[None], jnp.mean(signals.u, axis=0)])
+    else:
+        w = inside.astype(jnp.float64) / jnp.maximum(jnp.sum(inside), 1)
+        means = jnp.concatenate([(w @ signals.y)[None], w @ signals.u])
+    return jax.lax.stop_gradient(means)
+
+
+def first_position(h, delays, dt):
+    """The first sample (from a window's start) the modulated columns are integrated from:
+    every kernel, delays included, inside the window (`support_samples` of h + max tau)."""
+    return support_samples(h + (jnp.max(delays) if delays.shape[0] else 0.0), dt)
+
+
+def read_samples(n_samples: int, segments, first, h, delays, dt):
+    """(T, K) bool: the samples of each input that the modulated columns read. Positions
+    run from start + `first` to end - 1 of each identification segment [start, end) (S, 2),
+    and input k's kernel at position t reads u_k from t - tau_k - h to t - tau_k: samples
+    start + first - ceil((h + tau_k)/dt) .. end - 1 - floor(tau_k/dt). The excitation test
+    runs on these: an input constant over them is no excitation, whatever it does in the
+    window's last tau_k (a step there passed the test on the window's samples, and the
+    constant delayed input and the offset, collinear, came out at +-1e12, status ok)."""
+    idx = jnp.arange(n_samples)[:, None, None]
+    lo = segments[None, :, :1] + first - support_samples(h + delays, dt)[None, None, :]
+    hi = segments[None, :, 1:] - 1 - jnp.floor(delays / dt + EDGE).astype(jnp.int32)[None, None]
+    return jnp.any((idx >= lo) & (idx <= hi), axis=1)
 
 
 def level_vector(levels, b_starts, p: int):
@@ -172,15 +200,18 @@ def modulated_columns(signals: Signals, structure: Structure, mf: ModulatingFunc
     q = gregory_weights(T, first, dt, end)
     bounds = jnp.concatenate(bounds) * jnp.sqrt(jnp.sum(q))
     fits = first <= length - 1
+    reads = read_samples(T, jnp.asarray([[0, T if end is None else end]]), first, mf.h,
+                         signals.delays, dt)
     return ModulatedSignals(jnp.concatenate(cols, axis=1), q, bounds, first,
-                            input_varies(signals.u), fits)
+                            input_varies(signals.u, reads), fits)
 
 
 def input_varies(u, inside=None):
     """(K,) bool: input k varies (its spread above 1e-12 of its largest |u|) over the samples
-    that `inside` (T,) marks (default: all of them)."""
+    that `inside` (T,) or, per input, (T, K) marks (default: all of them)."""
+    mask = None if inside is None else inside if inside.ndim == 2 else inside[:, None]
     keep = (lambda x, fill: x) if inside is None else (  # noqa: E731
-        lambda x, fill: jnp.where(inside[:, None], x, fill))
+        lambda x, fill: jnp.where(mask, x, fill))
     spread = (jnp.max(keep(u, -jnp.inf), axis=0, initial=-jnp.inf)
               - jnp.min(keep(u, jnp.inf), axis=0, initial=jnp.inf))
     return spread > 1e-12 * jnp.maximum(jnp.max(keep(jnp.abs(u), 0.0), axis=0, initial=0.0),

@@ -115,7 +115,8 @@ def identify_core(signals, structure, mf, eta, length: int, end=None,
     n = structure.n
     means = levels = None  # with an offset term the columns are those of the centred signals
     if signals.offset:
-        means = signal_levels(signals)
+        means = signal_levels(signals, None if end is None else
+                              jnp.arange(signals.n_samples) < end)  # padding not counted
         starts = np.cumsum([n + 1] + [mk + 1 for mk in structure.m])[:K]
         levels = level_vector(means, starts, structure.n_params + 1)
         eta = centred_eta(eta, levels)

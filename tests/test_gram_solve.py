@@ -2,6 +2,7 @@ import warnings
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 import reference as R
 
 import mfmjax
@@ -129,6 +130,65 @@ def test_a_steady_input_is_masked_and_its_level_goes_to_the_offset():
     assert float(model.b[1][0]) == float(best.b[1][0]) == 0.0
     np.testing.assert_allclose(np.asarray(best.theta), np.asarray(model.theta), rtol=1e-9,
                                atol=1e-12)
+
+
+def test_a_delayed_input_is_judged_on_the_samples_its_columns_read():
+    """u_1 (delay 100 s) steps 50 s before the record's end: its delayed copy, all the
+    columns read, never moves, so it is no excitation and its column the offset's. The test
+    ran on the window's samples, saw the step and passed: identify returned b_10 = 0.61 for
+    0.01 (status ill_conditioned only), and on the forehearth's identifier windows (delay
+    265 s) the constant delayed input and the offset came out at 2e9 and -2.6e12, status ok,
+    predicting 1e14 off. Now identify and search flag NO_EXCITATION and mask the column as for
+    a steady input (the level goes to the offset; noise-free: the MFM estimate's quadrature
+    error, 1e-6). The same input stepping 200 s earlier (its delayed step inside the window)
+    is excitation, as before."""
+    dt, T, d = 1.0, 1200, 100.0
+    t = np.arange(T) * dt
+    u2 = np.sin(0.05 * t) + 0.3 * np.sign(np.sin(0.013 * t))
+    true = mfmjax.Model.from_coefficients([0.01, 0.3, 1.0], [[0.01], [0.02]], delays=[d, 0.0],
+                                          offset=0.05)
+    st, mf = Structure(2, (0, 0)), ModulatingFunction(3, 3, 40.0)
+    for step, excited in ((1150, False), (950, True)):
+        u = np.stack([np.where(t < step, 1.0, 2.0), u2], 1)
+        sig = Signals(np.asarray(mfmjax.simulate(true, u, None, dt=dt)), u, dt=dt,
+                      delays=[d, 0.0], offset=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = mfmjax.identify(sig, st, mf)
+            res = mfmjax.search(sig, n=(2,), m=[(0,), (0,)], N=(3,), M=(3,), h=(40.0,),
+                                delays=[[d], [0.0]])
+        best = res.best(0)
+        flag = int(mfmjax.Status.NO_EXCITATION)
+        assert bool(int(model.status) & flag) == bool(int(best.status) & flag) == (not excited)
+        got = [*np.asarray(model.a)[:2], float(model.b[0][0]), float(model.b[1][0]),
+               float(model.offset)]
+        # masked: the level 1.0 x 0.01 of u_1 joins the offset (0.05 + 0.01)
+        want = [0.01, 0.3, 0.01, 0.02, 0.05] if excited else [0.01, 0.3, 0.0, 0.02, 0.06]
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(best.theta), np.asarray(model.theta), rtol=1e-9,
+                                   atol=1e-12)
+
+
+def test_search_on_a_window_scores_j_rel_as_identify_on_the_window():
+    """With an offset term the search centred the signals on the whole record's means, the
+    validation data included, and `identify` on the window's record on the window's: the same
+    model's J_rel differed (0.16479 against 0.16443 on the DaISy heating system, a CLI audit).
+    Both now centre on the identification window's means."""
+    dt, T = 0.02, 1500
+    t = np.arange(T) * dt
+    u = (np.sin(0.9 * t) + 0.4 * np.cos(2.9 * t) + 0.3 * (t > 22.0))[:, None]
+    true = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]], offset=0.7)
+    y = np.asarray(mfmjax.simulate(true, u, None, dt=dt))
+    y = y + 0.01 * np.random.default_rng(3).standard_normal(T) + 40.0 * (t > 25.0)
+    sig = Signals(y, u, dt=dt, offset=True)
+    model = mfmjax.identify(sig.window(0.0, 20.0), Structure(2, (0,)),
+                            ModulatingFunction(3, 4, 1.5))
+    res = mfmjax.search(sig, n=(2,), m=[(0,)], N=(3,), M=(4,), h=(1.5,), identify=[(0.0, 20.0)],
+                        validate=(20.5, 29.9))
+    row = res.row(0)
+    np.testing.assert_allclose(np.asarray(res.best(0).theta), np.asarray(model.theta),
+                               rtol=1e-9)
+    assert row["J"] == pytest.approx(float(model.J_rel), rel=1e-9)
 
 
 def test_building_blocks_refuse_what_identify_refuses():

@@ -14,7 +14,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _batch
-from .._gram import input_varies, level_vector, signal_levels, steady_input_columns
+from .._gram import (
+    first_position,
+    input_varies,
+    level_vector,
+    read_samples,
+    signal_levels,
+    steady_input_columns,
+)
 from .._identify import FEEDTHROUGH_STEPS
 from .._jit import RUN_ONCE_OPTIONS, jit
 from .._linalg import hurwitz
@@ -76,18 +83,16 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
     segs = where["segments"]
     inside = jnp.any((idx[:, None] >= segs[None, :, 0]) & (idx[:, None] < segs[None, :, 1]),
                      axis=1)
-    varies = input_varies(sig.u, inside)
-    excited = jnp.all(varies)
     hpow_i = jnp.asarray(static.col_deriv, dtype=jnp.float64)
     src_of = np.asarray(static.col_source)
     pad = np.cumsum([n_max + 1] + [mk + 1 for mk in m_max])  # b blocks in the padded layout
 
-    steady = steady_input_columns(varies, n_max + 1, [mk + 1 for mk in m_max], sig.offset)
-    # with an offset term the Grams are those of the centred signals (`signal_levels`)
-    levels = signal_levels(sig) if sig.offset else None
+    # with an offset term the Grams are those of the centred signals (`signal_levels`: the
+    # means over the identification windows, as `identify` on the window's own record)
+    levels = signal_levels(sig, inside) if sig.offset else None
     lv = None if levels is None else level_vector(levels, pad[:K], p)
 
-    def one_nm(H, W, scale, h, coef):
+    def one_nm(H, W, scale, h, coef, steady):
         Cf = coef * (h ** (-hpow_i))[:, None, None]  # (p_ext, sources, Q)
         Cflat = Cf.reshape(Cf.shape[0], n_src * Q)
         Gx = Cflat @ H @ Cflat.T
@@ -98,7 +103,7 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
 
     a_idx = np.arange(n_max + 1)
 
-    def solve(Gx, alive, h, N, M, c):
+    def solve(Gx, alive, excited, h, N, M, c):
         """One candidate in the padded layout, the columns beyond its orders masked: one
         program for every order class (the order `c["n"]` is traced)."""
         n, mask, ft = c["n"], c["mask"], c["ft"]
@@ -136,12 +141,17 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
 
     def grams(hd):  # one (h, delays) setting: the Gram of every (N, M)
         h, delays = hd
-        H, W, scale = moment_gram(sig, static, h, delays, where["segments"], levels)
-        return jax.vmap(lambda coef: one_nm(H, W, scale, h, coef))(nm["coef"])
+        H, W, scale = moment_gram(sig, static, h, delays, segs, levels)
+        # the excitation test on the samples each (delayed) input's columns read
+        varies = input_varies(sig.u, read_samples(sig.n_samples, segs, first_position(
+            h, delays, sig.dt), h, delays, sig.dt))
+        steady = steady_input_columns(varies, n_max + 1, [mk + 1 for mk in m_max], sig.offset)
+        Gx, alive = jax.vmap(lambda coef: one_nm(H, W, scale, h, coef, steady))(nm["coef"])
+        return Gx, alive, jnp.all(varies)
 
     def solve_pair(g, c):  # candidate `c` at setting `g`
-        return solve(Gx[g, c["nm"]], alive[g, c["nm"]], groups["h"][g], nm["N"][c["nm"]],
-                     nm["M"][c["nm"]], c)
+        return solve(Gx[g, c["nm"]], alive[g, c["nm"]], excited[g], groups["h"][g],
+                     nm["N"][c["nm"]], nm["M"][c["nm"]], c)
 
     # the signal-sized work one setting at a time (cache-sized; vmapped over the devices'
     # blocks of the sharded axis), the small solves batched over all of them
@@ -152,9 +162,9 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
     def per_dev(x):  # the leading axis split into the devices' blocks
         return x.reshape((static.devices, x.shape[0] // static.devices) + x.shape[1:])
 
-    Gx, alive = jax.vmap(lambda hd: jax.lax.map(grams, hd))(
+    Gx, alive, excited = jax.vmap(lambda hd: jax.lax.map(grams, hd))(
         (per_dev(groups["h"]), per_dev(groups["delays"])))
-    Gx, alive = Gx.reshape((G,) + Gx.shape[2:]), alive.reshape((G,) + alive.shape[2:])
+    Gx, alive, excited = (x.reshape((G,) + x.shape[2:]) for x in (Gx, alive, excited))
     # every (setting, candidate) pair in one flat axis (a smaller program than two nested
     # vmaps), solved in cache-sized blocks on each device's share of the settings
     pairs = (jnp.repeat(jnp.arange(G), C),

@@ -5,12 +5,12 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from .._gram import first_position
 from .._quadrature import (
     delayed_samples,
     fft_size,
     gregory_weights,
     legendre_weights,
-    support_samples,
 )
 from .._signals import Signals
 from ._grid import ChunkStatic
@@ -53,9 +53,8 @@ def moment_gram(sig: Signals, static: ChunkStatic, h, delays, segments, levels=N
         shifts.append(0.0 if levels is None or c is None else levels[c])
     x, W = jnp.stack(signals), jnp.stack(weights)
     Mom = _fft_modulate(x - jnp.stack(shifts)[:, None], W)  # (T, sources * Q)
-    span = h + (jnp.max(delays) if delays.shape[0] else 0.0)
     # the Gram integral sums the valid samples of each identification window [start, end)
-    first = support_samples(span, dt)
+    first = first_position(h, delays, dt)
     q = jnp.sum(jax.vmap(lambda ab: gregory_weights(T, ab[0] + first, dt, end=ab[1]))(segments),
                 axis=0)
     Mq = jnp.sqrt(q)[:, None] * Mom  # q >= 0 (Gregory weights)
