@@ -220,6 +220,11 @@ def test_mse_without_history_equals_mse_with_it(switching):
         lean.update(t[c0 : c0 + 97], y[c0 : c0 + 97], u[c0 : c0 + 97])
     assert lean.series()["t"].size == 0 and lean.events == []
     assert lean.mse() == pytest.approx(full.mse(), rel=1e-12)
+    # once predictions are made, why_no_prediction says so (it named the last held-back
+    # action, or "why is not known" without history, beside a finite MSE)
+    for ident in (full, lean):
+        assert ident.why_no_prediction().startswith(
+            f"predictions are being made ({len(ident.models)} models accepted, MSE "), ident
 
 
 def test_single_sample_chunks_equal_large_chunks(switching):
@@ -258,8 +263,18 @@ def test_config_errors(kw, match):
 
 def test_update_errors():
     state = mfmjax.online.init(_config())
-    with pytest.raises(ValueError, match="sampling grid"):
+    with pytest.raises(ValueError, match=r"sampling grid t0 \+ i\*dt \(t0=0.0, dt=1\): t\[1\] = "
+                       r"1.5 is -0.5 from its grid point 2.0; round the times"):
         mfmjax.online.update(state, [0.0, 1.5], [0.0, 0.0], np.zeros((2, 2)))
+    # epoch seconds at dt = 0.1 written with 3 decimals (a CSV) miss the grid by the float's
+    # rounding at 1.7e9 (2.4e-7 s > 1e-6 dt): accepted (they were refused)
+    fine = mfmjax.online.init(_config(dt=0.1, interval=25.0, T_obfin=50.0, T_obinit=100.0,
+                                      h=(5.0, 10.0)))
+    t = np.array([float(f"{1700000000.123 + k * 0.1:.3f}") for k in range(400)])
+    off = np.abs(t - (t[0] + np.round((t - t[0]) / 0.1) * 0.1))
+    assert off.max() > 1e-7  # the old tolerance, 1e-6 dt
+    fine, _ = mfmjax.online.update(fine, t, np.zeros(400), np.zeros((400, 2)))
+    assert float(fine.t0) == t[0]
     state, _ = mfmjax.online.update(state, [0.0, 1.0], [0.0, 0.0], np.zeros((2, 2)))
     with pytest.raises(ValueError, match="increase"):
         mfmjax.online.update(state, [1.0], [0.0], np.zeros((1, 2)))
@@ -718,3 +733,22 @@ def test_plot_online_shows_only_what_falls_on_its_time_axis(tmp_path):
     assert texts == ["2", "3", "p3"]  # model 1 and the first operating point are off the axis
     assert "identifying model 1" in legend_all and texts_all == ["1", "2", "3", "p1", "p3"]
     assert (tmp_path / "resumed.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_noise_variance_of_a_quantised_output_is_not_zero():
+    """An output recorded at a historian's resolution (0.5 degC): most first differences are 0
+    and their MAD too, so the improved mode's noise estimate was 0 and its alarm (prediction
+    MSE over 100 noise variances) fired on every interval. The estimate is now at least the
+    quantisation's q^2 / 12; on unquantised white noise it is the MAD estimate, within its
+    sampling error (250 samples: about 10 %)."""
+    from mfmjax._online import noise_variance
+
+    rng = np.random.default_rng(0)
+    t = np.arange(250.0)
+    slow = 1160.0 + 2.0 * np.sin(2 * np.pi * t / 2000.0) + 0.05 * rng.standard_normal(250)
+    quantised = np.round(slow / 0.5) * 0.5
+    white = 0.3 * rng.standard_normal(250)
+    nv = noise_variance(np.column_stack([quantised, white]))
+    assert nv[0] == pytest.approx(0.5**2 / 12, rel=1e-12)
+    assert nv[1] == pytest.approx(0.09, rel=0.25)
+    assert noise_variance(np.ones((250, 1)))[0] == 0.0  # a constant: no noise, no floor
