@@ -153,18 +153,29 @@ def first_position(h, delays, dt):
     return support_samples(h + (jnp.max(delays) if delays.shape[0] else 0.0), dt)
 
 
-def read_samples(n_samples: int, segments, first, h, delays, dt):
+def read_samples(n_samples: int, segments, first, h, delays, dt, rules, feedthrough):
     """(T, K) bool: the samples of each input that the modulated columns read. Positions
-    run from start + `first` to end - 1 of each identification segment [start, end) (S, 2),
-    and input k's kernel at position t reads u_k from t - tau_k - h to t - tau_k: samples
-    start + first - ceil((h + tau_k)/dt) .. end - 1 - floor(tau_k/dt). The excitation test
-    runs on these: an input constant over them is no excitation, whatever it does in the
-    window's last tau_k (a step there passed the test on the window's samples, and the
-    constant delayed input and the offset, collinear, came out at +-1e12, status ok)."""
+    run from start + `first` to end - 1 of each identification segment [start, end) (S, 2);
+    input k's kernel at position t covers u_k from t - tau_k - h to t - tau_k, and its rule
+    (`rules[k]`: "zoh", "foh", "cubic") reads the samples at lags d + 1 (zoh: held from the
+    sample before), d (foh) or max(d - 1, 0) (cubic: one node beyond the cell) back to
+    ceil((h + tau_k)/dt), d = floor(tau_k/dt); a feed-through input (`feedthrough[k]`: m_k =
+    n, its delayed samples enter the output columns) also lag d. The excitation test runs on
+    these: an input constant over them is no excitation, whatever it does in the window's last
+    tau_k (a step there passed the test on the window's samples, and the constant delayed
+    input and the offset, collinear, came out at +-1e12, status ok)."""
+    d = jnp.floor(delays / dt + EDGE).astype(jnp.int32)
+    step = np.array([0 if ft else {"zoh": 1, "cubic": -1}.get(rule, 0)
+                     for rule, ft in zip(rules, feedthrough)], np.int32)
     idx = jnp.arange(n_samples)[:, None, None]
     lo = segments[None, :, :1] + first - support_samples(h + delays, dt)[None, None, :]
-    hi = segments[None, :, 1:] - 1 - jnp.floor(delays / dt + EDGE).astype(jnp.int32)[None, None]
+    hi = segments[None, :, 1:] - 1 - jnp.maximum(d + step, 0)[None, None]
     return jnp.any((idx >= lo) & (idx <= hi), axis=1)
+
+
+def input_rules(signals: Signals) -> tuple:
+    """Each input's quadrature rule: cubic where `smooth`, else its intersample rule."""
+    return tuple("cubic" if s else r for r, s in zip(signals.intersample, signals.smooth))
 
 
 def level_vector(levels, b_starts, p: int):
@@ -201,7 +212,8 @@ def modulated_columns(signals: Signals, structure: Structure, mf: ModulatingFunc
     bounds = jnp.concatenate(bounds) * jnp.sqrt(jnp.sum(q))
     fits = first <= length - 1
     reads = read_samples(T, jnp.asarray([[0, T if end is None else end]]), first, mf.h,
-                         signals.delays, dt)
+                         signals.delays, dt, input_rules(signals),
+                         [mk == structure.n for mk in structure.m])
     return ModulatedSignals(jnp.concatenate(cols, axis=1), q, bounds, first,
                             input_varies(signals.u, reads), fits)
 

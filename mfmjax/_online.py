@@ -508,17 +508,19 @@ def _take(state: OnlineState, start: int, length: int):
 
 
 def noise_variance(x) -> np.ndarray:
-    """Per column of x (S, C): the noise variance, (1.4826 MAD of the first differences)^2 / 2
-    (white noise: var(dx) = 2 sigma^2; the MAD keeps steps out), at least a quantised
-    signal's q^2 / 12, q its smallest nonzero difference: on an output recorded at a
-    historian's resolution most differences are 0, the MAD too, and the improved mode's
-    alarm (an interval's prediction MSE over 100 noise variances) fired on every interval
-    (19 of 19 at 0.5 degC, one with an MSE of 0.017). Unquantised data: q is far below the
-    noise, and the floor with it."""
+    """Per column of x (S, 1 + K: the output, then the inputs): the noise variance,
+    (1.4826 MAD of the first differences)^2 / 2 (white noise: var(dx) = 2 sigma^2; the MAD
+    keeps steps out); the output's at least a quantised signal's q^2 / 12, q its smallest
+    nonzero difference: on an output recorded at a historian's resolution most differences
+    are 0, the MAD too, and the improved mode's alarm (an interval's prediction MSE over 100
+    noise variances) fired on every interval (19 of 19 at 0.5 degC, one with an MSE of
+    0.017). Unquantised data: q is far below the noise, and the floor with it. Not the
+    inputs': a set-point's or a PRBS's smallest step is a move, not a quantum (a floor there
+    raised their steadiness thresholds above their own steps)."""
     dx = np.diff(x, axis=0)
     nv = (1.4826 * np.median(np.abs(dx - np.median(dx, axis=0)), axis=0)) ** 2 / 2
-    q = np.min(np.where(dx != 0, np.abs(dx), np.inf), axis=0, initial=np.inf)
-    return np.maximum(nv, np.where(np.isfinite(q), q**2 / 12, 0.0))
+    q = np.min(np.where(dx[:, :1] != 0, np.abs(dx[:, :1]), np.inf), initial=np.inf)
+    return np.concatenate([[max(nv[0], q**2 / 12 if np.isfinite(q) else 0.0)], nv[1:]])
 
 
 def _interval_stats(state: OnlineState, j: int):

@@ -167,6 +167,23 @@ def test_a_delayed_input_is_judged_on_the_samples_its_columns_read():
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(np.asarray(best.theta), np.asarray(model.theta), rtol=1e-9,
                                    atol=1e-12)
+    # the newest sample read, by rule (a review of the change): zoh holds the sample before
+    # t - tau (lag d + 1, d = 100 here): a step at sample T - 1 - d is never read, flagged (it
+    # was counted: b_10 = 7.2, ill_conditioned only); the cubic rule reads one node beyond
+    # the cell (lag d - 1): a step at T - d is read, not flagged
+    for rule, smooth, step, excited in (("zoh", False, T - 1 - 100, False),
+                                        ("foh", True, T - 100, True)):
+        u = np.stack([np.where(t < step, 1.0, 2.0), u2], 1)
+        sig = Signals(np.asarray(mfmjax.simulate(true, u, None, dt=dt)), u, dt=dt,
+                      delays=[d, 0.0], offset=True, intersample=[rule, "foh"],
+                      smooth=[smooth, False])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = mfmjax.identify(sig, st, mf)
+            best = mfmjax.search(sig, n=(2,), m=[(0,), (0,)], N=(3,), M=(3,), h=(40.0,),
+                                 delays=[[d], [0.0]]).best(0)
+        flag = int(mfmjax.Status.NO_EXCITATION)
+        assert bool(int(model.status) & flag) == bool(int(best.status) & flag) == (not excited)
 
 
 def test_search_on_a_window_scores_j_rel_as_identify_on_the_window():

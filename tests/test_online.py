@@ -752,3 +752,7 @@ def test_noise_variance_of_a_quantised_output_is_not_zero():
     assert nv[0] == pytest.approx(0.5**2 / 12, rel=1e-12)
     assert nv[1] == pytest.approx(0.09, rel=0.25)
     assert noise_variance(np.ones((250, 1)))[0] == 0.0  # a constant: no noise, no floor
+    # an input's smallest step is a move, not a quantum: no floor on the inputs (a step of 10
+    # had a noise variance of 8.3, above a quarter of the interval's variance, 21)
+    step = np.where(t < 100, 0.0, 10.0)
+    assert noise_variance(np.column_stack([quantised, step]))[1] == 0.0

@@ -16,6 +16,7 @@ import numpy as np
 from .. import _batch
 from .._gram import (
     first_position,
+    input_rules,
     input_varies,
     level_vector,
     read_samples,
@@ -143,8 +144,9 @@ def evaluate_chunk(sig: Signals, static: ChunkStatic, eta_full, groups, cand, nm
         h, delays = hd
         H, W, scale = moment_gram(sig, static, h, delays, segs, levels)
         # the excitation test on the samples each (delayed) input's columns read
-        varies = input_varies(sig.u, read_samples(sig.n_samples, segs, first_position(
-            h, delays, sig.dt), h, delays, sig.dt))
+        varies = input_varies(sig.u, read_samples(
+            sig.n_samples, segs, first_position(h, delays, sig.dt), h, delays, sig.dt,
+            input_rules(sig), [k in static.ft_inputs for k in range(K)]))
         steady = steady_input_columns(varies, n_max + 1, [mk + 1 for mk in m_max], sig.offset)
         Gx, alive = jax.vmap(lambda coef: one_nm(H, W, scale, h, coef, steady))(nm["coef"])
         return Gx, alive, jnp.all(varies)
