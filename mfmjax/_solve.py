@@ -3,6 +3,7 @@ r"""Constrained minimisation of $\theta^T G \theta$ subject to $\eta^T\theta = 1
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from . import _linalg
 from ._boundary import require_x64
@@ -19,8 +20,6 @@ def check_gram(fn: str, G, eta, active=None) -> None:
     """Concrete arguments of the public solves: a Gram matrix (finite, symmetric, a
     non-negative diagonal) and a constraint that some active column carries (else eq. (11)
     has no solution). Traced ones are not checked (their result is NaN where it fails)."""
-    import numpy as np
-
     from ._boundary import is_traced
 
     if any(is_traced(x) for x in (G, eta, active)):
@@ -47,8 +46,6 @@ def _finite_result(fn: str, theta, why: str) -> None:
     from ._boundary import is_traced
 
     if not is_traced(theta):
-        import numpy as np
-
         if not np.all(np.isfinite(np.asarray(theta))):
             raise ValueError(f"{fn}(): no finite solution: {why}")
 
@@ -135,8 +132,6 @@ def default_eta(p: int, offset: bool):
     depend on them on noisy data: at a level of 1e4 (noise 1 % of the spread) a and b moved by
     27 % (status ok) and search rankings changed already at 1e2. With 0 there only the offset
     moves with the levels. The on-line identifier's paper mode keeps the paper's ones."""
-    import numpy as np
-
     eta = np.ones(p)
     if offset:
         eta[-1] = 0.0
