@@ -193,6 +193,20 @@ def test_resample_zoh_foh_exact_at_sample_times():
     np.testing.assert_allclose(np.asarray(sig.y), 2.0 * grid + 1.0, rtol=REL)
 
 
+def test_resample_holds_the_samples_of_an_epoch_time_column():
+    """A 10 Hz logger's epoch seconds written with 3 decimals miss t0 + k dt by float rounding
+    (2.4e-7 s near 1.7e9, 2.4e-6 dt): with a tolerance of 1e-9 dt a held input read the
+    previous sample at about 13 % of the grid times, unsaid, and the last sample was dropped.
+    Grid times within 8 ulps of a sample time are that sample now."""
+    rng = np.random.default_rng(0)
+    for t0 in 1.6e9 + rng.uniform(0.0, 2e8, 5):
+        t = np.array([float(f"{t0 + i * 0.1:.3f}") for i in range(300)])
+        u = np.arange(300.0)
+        sig = mfmjax.resample(t, np.sin(u), u, dt=0.1, intersample="zoh")
+        assert sig.n_samples == 300
+        np.testing.assert_array_equal(np.asarray(sig.u)[:, 0], u)
+
+
 def test_resample_cubic_output_exact_for_a_cubic():
     t, _ = _irregular(t0=0.0)
     y = 0.5 * t**3 - t**2 + 3.0
