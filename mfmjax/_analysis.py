@@ -459,7 +459,9 @@ def _step_program(base, theta, u, cov, dt):
 def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) -> StepResponse:
     r"""Unit-step response of each input (from rest, offset excluded, delays included) by the
     exact simulation, on `n_points` times 0..`t_final` (default: 7 time constants of the
-    slowest stable pole plus the largest delay), with a 99 % band $\pm 2.576\sigma$ from the
+    slowest stable pole, at least 3 periods of the slowest undamped oscillation, or 3
+    e-folding times of the fastest growing mode; 1 with none of these; plus the largest
+    delay), with a 99 % band $\pm 2.576\sigma$ from the
     delta method ($\sigma^2 = \mathrm{diag}(J \Sigma J^T)$, $J$ the Jacobian of the response in
     the free parameters by `jax.jacfwd`, $\Sigma$ their covariance; delays count as known).
 
@@ -474,13 +476,20 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
     rate = _growing("step_response", model, "its step response grows without bound" + (
         "; the default horizon shows 3 e-folding times of the fastest growing mode"
         if t_final is None else ""))
+    # poles within the roots' rounding of the imaginary axis (as `growing_poles`): an
+    # undamped pair came back from np.roots at Re = -7e-17 and, counted as stable, set a
+    # default horizon of 1e17 (the oscillation's phase lost to float64, the values off by 3.7)
+    tol = 1e-9 * np.max(np.abs(p), initial=0.0)
+    axis = p[np.abs(p.real) <= tol]
     if t_final is None:  # 7 time constants of the slowest stable pole, or 3 e-folding times
         # of the fastest unstable one (the slowest stable pole hid a slow divergence: the
-        # DaISy dryer's +0.00055 looked settled at 988 s)
-        stable = p[p.real < 0]
-        scale = (1.0 / np.min(-stable.real)) if stable.size else (
-            1.0 / max(np.min(np.abs(p)), 1e-300) if np.any(p != 0) else 1.0)
-        t_final = (3.0 / rate if rate > 0 else 7.0 * scale) + float(
+        # DaISy dryer's +0.00055 looked settled at 988 s); at least 3 periods of the slowest
+        # undamped oscillation
+        stable, omega = p[p.real < -tol], np.abs(axis.imag[np.abs(axis.imag) > tol])
+        scale = 7.0 / np.min(-stable.real) if stable.size else 0.0
+        if omega.size:
+            scale = max(scale, 3.0 * 2.0 * np.pi / np.min(omega))
+        t_final = (3.0 / rate if rate > 0 else (scale if scale > 0 else 1.0)) + float(
             np.max(np.asarray(model.delays), initial=0.0))
     t_final = _b.number("step_response", "t_final", t_final, lo=0, lo_open=True,
                         fix="give the duration in the model's time unit")

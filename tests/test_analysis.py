@@ -227,6 +227,26 @@ def test_step_response_default_horizon_and_offset_excluded():
     assert st.y[0, -1] == pytest.approx(B_TRUE[0][0] / A_TRUE[0], abs=2e-3)  # e^-7 of the gain
 
 
+def test_step_response_default_horizon_of_undamped_poles():
+    """(s^2 + 0.25)(s + 1): np.roots gives the undamped pair Re = -7e-17, which counted as a
+    stable pole and set the default horizon to 7 / 7e-17 = 1e17 s; the response there lost
+    the oscillation's phase to float64 (values off by up to 3.7 on a 0..7.6 response). Poles
+    within the roots' rounding of the axis (1e-9 |p|, as `growing_poles`) are undamped now:
+    the horizon is 3 periods of the slowest (37.7 s, beyond 7 s of the pole at -1), and the
+    response equals the closed form. s(s^2 + 1) (7e300 before: "overflows float64") gets 3
+    periods, over which it is t - sin t."""
+    model = Model.from_coefficients([0.25, 0.25, 1.0, 1.0], [[1.0]])
+    st = mfmjax.step_response(model)
+    assert st.t[-1] == pytest.approx(3 * 2 * np.pi / 0.5, rel=1e-12)
+    t = np.asarray(st.t)
+    # 1/(s (s^2 + 1/4)(s + 1)) = 4/s - (4/5) e^-t/(s+1) - (16/5 s + 4/5)/(s^2 + 1/4)
+    closed = 4 - 0.8 * np.exp(-t) - 3.2 * np.cos(t / 2) - 1.6 * np.sin(t / 2)
+    np.testing.assert_allclose(st.y[0], closed, rtol=0, atol=1e-12)
+    st = mfmjax.step_response(Model.from_coefficients([0.0, 1.0, 0.0, 1.0], [[1.0]]))
+    assert st.t[-1] == pytest.approx(6 * np.pi, rel=1e-12)
+    np.testing.assert_allclose(st.y[0], np.asarray(st.t) - np.sin(st.t), rtol=0, atol=1e-12)
+
+
 def test_frequency_response_and_band_match_numpy(tmp_path):
     model = _model()
     w = np.logspace(-2, 1.5, 60)
