@@ -138,6 +138,12 @@ def to_control(model: Model, *, pade_order: int = 5):
                          fix="use 3..10 (higher orders are ill-conditioned)")
     ss = _realised(model)  # NumPy, as to_scipy
     names = list(model.input_names) + (["offset"] if model.has_offset else [])
+    if len(set(names)) < len(names):  # python-control keeps one label per name: sys[0, name]
+        # then picked another column than the name said
+        raise ValueError(f"to_control(): the system's input labels {names} (the model's inputs"
+                         f"{' and offset for its offset term' if model.has_offset else ''}) "
+                         "must differ: rename the inputs (model.labelled(output_name, "
+                         "input_names))")
     plant = control.ss(*(np.asarray(M) for M in (ss.A, ss.B, ss.C, ss.D)))
     tau = _delays(model)
     if pade_order == 0 or not np.any(tau != 0):

@@ -438,6 +438,13 @@ def test_to_control_keeps_delays_as_pade_and_to_scipy_refuses_them():
         mfmjax.to_scipy(model)
     sp = mfmjax.to_scipy(model, ignore_delays=True)
     assert sp.A.shape == (2, 2)
+    # an input named "offset" beside the offset term: python-control kept one label for two
+    # inputs, and sys[0, "offset"] picked the plant's input (B = 3, not the offset's)
+    clash = Model.from_coefficients([1.0, 1.0], [[3.0]], offset=1.0, input_names=["offset"])
+    with pytest.raises(ValueError, match=r"to_control\(\): the system's input labels "
+                       r"\['offset', 'offset'\] .* must differ: rename the inputs"):
+        mfmjax.to_control(clash)
+    assert mfmjax.to_control(clash.labelled("y", ["heat"])).input_labels == ["heat", "offset"]
     with pytest.raises(ValueError, match=r"to_control\(\): pade_order must be"):
         mfmjax.to_control(model, pade_order=-1)
 
