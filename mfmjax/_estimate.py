@@ -242,6 +242,13 @@ def estimate(
         outs = _from_rest_to_output_error(records, outs, checked, n_top)
     for r, (o, (notes, serious, _)) in enumerate(zip(outs, checked)):
         texts = delay_edge_notes(o.model.delays, o.model.input_names, edges)
+        gridded = [o.model.input_names[k] for k, v in enumerate(edges) if len(set(v)) > 1]
+        if gridded and o.method != "mfm":  # (the MFM stage has no std errors to qualify)
+            texts += (f"the delays of {', '.join(map(repr, gridded))} were chosen from their "
+                      "grid: the standard errors count them as known and are too small where "
+                      "they are uncertain (0.38-0.43 of the spread, a 0.47 s delay on a 0.1 s "
+                      "grid at 10 dB); for std errors that include them, refine the delays and "
+                      "fit output_error(..., delay_uncertainty=True)",)
         warn = list(texts) + list(notes[:1] if serious else ())
         outs[r] = replace_fields(o, notes=o.notes + texts + notes)
         if warn:
@@ -854,6 +861,7 @@ HOLDOUT_TIE = 0.05  # hold-out E within 5 % (as POLISH_GAIN): a tie, decided by 
 FALLBACKS = 2  # next-ranked SRIVC candidates tried where the chosen one did not converge
 STRUCTURES = 8  # structures whose best setting goes on to SRIVC in the hold-out comparison
 NESTED = 8  # at most this many structures nested in those go on to SRIVC too
+DELAYS = 12  # per structure, the best setting of at most this many of the grid's delays
 OFFSET_GAIN = 0.05  # an undecided offset term must lower the hold-out E x FPE by 5 % to be kept
 
 
@@ -878,7 +886,20 @@ def _best_per_structure(res: SearchResult, count: int) -> list[int]:
                   for k in range(len(m)) if m[k] > 0]
         level = [key for key in dict.fromkeys(nested) if key in first and key not in chosen]
         chosen += level[: most - len(chosen)]
-    return [first[key] for key in chosen] or [0]
+    # with a delay grid, each structure's best setting at each of its delays (at most DELAYS,
+    # by rank): MFM's equation-error bias under noise also biases the delay it ranks first,
+    # and SRIVC at that delay fitted the wrong model with tight std errors (0.47 s searched
+    # on 0, 0.1, .., 1 at 10 dB: 0.7 or 0.8 on 37 of 40 records, never 0.4 or 0.5, a_0 up to
+    # 4.4 std errors off, unsaid); the hold-out comparison chooses among SRIVC's fits
+    delays = np.round(np.asarray(c["delays"], dtype=np.float64).reshape(len(c["n"]), -1)[ranked],
+                      12)
+    per = {}  # structure -> ranks of its best candidate at each delay vector, in rank order
+    for i in usable:
+        key = (int(keys[i][0]), tuple(int(v) for v in keys[i][1:]))
+        seen = per.setdefault(key, {})
+        seen.setdefault(tuple(delays[i]), int(i))
+    out = [r for key in chosen for r in list(per[key].values())[:DELAYS]]
+    return out or [0]
 
 
 SHIFTS = {"start": "starting levels", "mean": "means"}
