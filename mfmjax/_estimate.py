@@ -111,7 +111,8 @@ def estimate(
       equation-error bias of MFM under output noise. `polish=None` (default) tries an
       output-error fit too and keeps it when it lowers the hold-out E by `POLISH_GAIN` (5 %).
       The best `STRUCTURES` (8) structures of the search, and at most `NESTED` (8) structures
-      nested in them (one numerator order lower, level by level), go through SRIVC; the plain MFM
+      nested in them (one numerator order lower, level by level), each with its best setting at
+      each of its grid delays (at most `DELAYS`, 12), go through SRIVC; the plain MFM
       estimate is kept only where it predicts the hold-out 5 % better than every SRIVC fit
       (real data whose noise is not white can favour it). Structures compete on the hold-out
       E times Akaike's FPE factor $(1 + 2k/N_h)$ (k free parameters, $N_h$ hold-out samples;
