@@ -542,6 +542,9 @@ def _refine_report(sig, model, vary_delays: bool) -> dict:
         # residuals, was printed under that name)
         "E_refined": E(r.model), "E_output_error": E(oe.model), "output_error_result": oe.result,
         "output_error_converged": oe.converged, "output_error_stabilised": oe.stabilised,
+        # what OutputErrorFit.summary() says and the warnings silenced above said
+        "output_error_unstable": bool(int(oe.model.status) & int(mfmjax.Status.UNSTABLE)),
+        "undetermined": [n for n, e in zip(oe.names, oe.std_errors) if not math.isfinite(e)],
         "parameters": {name: {"value": float(v), "std_error": float(e)}
                        for name, v, e in zip(oe.names, oe.theta, oe.std_errors)},
         "covariance": oe.covariance,
@@ -568,6 +571,12 @@ def _print_report(rep: dict) -> None:
     if rep["output_error_stabilised"]:
         print("note: the refined MFM model was unstable; its right-half-plane poles were mirrored "
               "before the output-error fit")
+    if rep["output_error_unstable"]:
+        print("WARNING: the output-error model is UNSTABLE (a root of A(s) with Re >= 0): "
+              "validate it before use")
+    if rep["undetermined"]:
+        print(f"WARNING: NOT DETERMINED by the data (infinite std error, the value is "
+              f"arbitrary): {', '.join(rep['undetermined'])}")
     print(f"{'parameter':<10}{'output error':>16}{'std. error':>14}")
     for name, p in rep["parameters"].items():
         print(f"{name:<10}{p['value']:>16.6e}{p['std_error']:>14.3e}")

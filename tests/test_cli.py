@@ -1,5 +1,6 @@
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -530,6 +531,9 @@ def test_identify_and_search_refine(csv_file, capsys, tmp_path):
     assert set(ref["parameters"]) == {"a_0", "a_1", "a_2", "b_10", "b_11", "b_20"}
     for p in ref["parameters"].values():
         assert p["std_error"] >= 0 and np.isfinite(p["value"])
+    # no delays given: none fitted, none counted; a stable, determined fit says nothing more
+    assert ref["delay_std_errors"] is None
+    assert ref["output_error_unstable"] is False and ref["undetermined"] == []
     # search refines on the data it fitted: with --identify-window, that window (refine and
     # output error ran on the whole record, --validate-window's data included, which the
     # validation line then called held back); the refined E_mfm is the winner's E there
@@ -647,3 +651,25 @@ def test_cli_audit_slips_are_said_before_the_work(csv_file, tmp_path, capsys):
     # windows that only touch (one shared end sample) are adjacent: not flagged
     assert main(ident + ["--identify-window", "0,10", "--validate-window", "10,19.99"]) == 0
     assert "overlaps" not in capsys.readouterr().out
+
+
+def test_refine_report_says_unstable_undetermined_and_fitted_delays(capsys):
+    """`--refine` silences the library's warnings (its report says what matters): an unstable
+    or undetermined output-error fit printed only its table (inf as `inf`), and the std
+    errors of a delay refine fitted were not shown. The report's lines, from its fields."""
+    from mfmjax._cli import _print_report
+
+    rep = {"settings": {"N": 4, "M": 5, "h": 2.0, "delays": [0.4363, 0.0]},
+           "refine_result": "successful", "refine_steps": 7, "E_mfm": 2.0, "E_refined": 1.5,
+           "E_output_error": 1.2, "output_error_result": "successful",
+           "output_error_converged": True, "output_error_stabilised": False,
+           "output_error_unstable": True, "undetermined": ["b_20"],
+           "parameters": {"a_0": {"value": 1.79, "std_error": 0.04},
+                          "b_20": {"value": 0.3, "std_error": float("inf")}},
+           "delay_std_errors": [0.033, None]}
+    _print_report(rep)
+    out = capsys.readouterr().out
+    assert "WARNING: the output-error model is UNSTABLE" in out
+    assert "WARNING: NOT DETERMINED by the data (infinite std error, the value is arbitrary): b_20" in out
+    assert re.search(r"delay 1 +4\.363000e-01 +3\.300e-02", out) and "delay 2" not in out
+    assert "the delays were fitted by refine; the standard errors include their uncertainty" in out
