@@ -532,7 +532,19 @@ def _srivc_batch(signals, model, max_iter, tol) -> list:
         if _b.is_traced(r.y) or _b.is_traced(m.a):
             raise TypeError("srivc(): a list of records is eager only; under jax.jit, "
                             "jax.vmap the single-record call over stacked Signals and Models")
+    for r, m in zip(records, models):  # as one record's call (a repeated text shows once)
+        _b.delays_note("srivc", m, r)
     fits = srivc_many(records, models, max_iter=max_iter, tol=tol)
+    # the records that start away from rest (one record's call warns of each; the batch said
+    # nothing, and a level of 100 at rest fitted a = [5.8, 7.6, 1] for [2, 3, 1], status ok)
+    away = [(i, text) for i, r in enumerate(records) if (text := _not_at_rest(r))]
+    if away:
+        warnings.warn(f"srivc(): {len(away)} of {len(records)} records do not start at rest "
+                      f"(records {[i for i, _ in away][:10]}{'...' if len(away) > 10 else ''}; "
+                      f"record {away[0][0]}: {away[0][1]}): the filters start from rest at the "
+                      "first sample, and the start-up transient biases those fits, converged "
+                      "or not; shift each record by its first samples (y - y[0], u - u[0], as "
+                      "estimate does; see srivc's docstring)", stacklevel=3)
     bad = [i for i, f in enumerate(fits) if f is None or int(f.status) != 0]
     if bad:
         warnings.warn(f"srivc(): {len(bad)} of {len(fits)} fits stopped without converging "

@@ -257,6 +257,15 @@ def test_list_of_records_equals_one_at_a_time():
     assert int(mixed[1].status) & SrivcStatus.UNSTABLE_FILTER and mixed[0].converged
     with pytest.raises(ValueError, match="srivc\\(\\): 3 records but 2 start models"):
         mfmjax.srivc(sigs[:3], starts[:2])
+    # a record away from rest: warned as one record's call warns (the list said nothing)
+    lifted = Signals(np.asarray(sigs[1].y) + 100.0, sigs[1].u, dt=DT, intersample=MODES,
+                     offset=True)
+    with pytest.warns(UserWarning, match=r"srivc\(\): 1 of 3 records do not start at rest "
+                      r"\(records \[1\]; record 1: y starts at"):
+        mfmjax.srivc([sigs[0], lifted, sigs[2]], starts[:3])
+    with pytest.warns(UserWarning, match=r"the filters start from rest at the first sample, "
+                      r"and the signals do not \(y starts at"):
+        mfmjax.srivc(lifted, starts[1])
     short = Signals(np.asarray(sigs[0].y)[:300], np.asarray(sigs[0].u)[:300], dt=DT,
                     intersample=MODES, offset=True)
     with pytest.raises(ValueError, match="srivc\\(\\): record 1 differs from record 0"):
