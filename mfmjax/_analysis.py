@@ -460,7 +460,7 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
     r"""Unit-step response of each input (from rest, offset excluded, delays included) by the
     exact simulation, on `n_points` times 0..`t_final` (default: 7 time constants of the
     slowest stable pole, at least 3 periods of the slowest undamped oscillation, or 3
-    e-folding times of the fastest growing mode; 1 with none of these; plus the largest
+    e-folding times of the fastest growing mode; 7 with integrators alone; plus the largest
     delay), with a 99 % band $\pm 2.576\sigma$ from the
     delta method ($\sigma^2 = \mathrm{diag}(J \Sigma J^T)$, $J$ the Jacobian of the response in
     the free parameters by `jax.jacfwd`, $\Sigma$ their covariance; delays count as known).
@@ -489,7 +489,10 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
         scale = 7.0 / np.min(-stable.real) if stable.size else 0.0
         if omega.size:
             scale = max(scale, 3.0 * 2.0 * np.pi / np.min(omega))
-        t_final = (3.0 / rate if rate > 0 else (scale if scale > 0 else 1.0)) + float(
+        if scale == 0:  # integrators only: 7 x the smallest nonzero |p|'s time, or 7
+            rest = np.abs(p[np.abs(p) > tol])
+            scale = 7.0 / np.min(rest) if rest.size else 7.0
+        t_final = (3.0 / rate if rate > 0 else scale) + float(
             np.max(np.asarray(model.delays), initial=0.0))
     t_final = _b.number("step_response", "t_final", t_final, lo=0, lo_open=True,
                         fix="give the duration in the model's time unit")

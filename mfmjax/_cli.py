@@ -548,7 +548,9 @@ def _refine_report(sig, model, vary_delays: bool) -> dict:
         "parameters": {name: {"value": float(v), "std_error": float(e)}
                        for name, v, e in zip(oe.names, oe.theta, oe.std_errors)},
         "covariance": oe.covariance,
-        "delay_std_errors": None if oe.delay_std_errors is None else [
+        # null where no delay was counted (none fitted, or all of them 0)
+        "delay_std_errors": None if oe.delay_std_errors is None or not np.any(
+            np.isfinite(oe.delay_std_errors)) else [
             float(v) if math.isfinite(v) else None for v in oe.delay_std_errors],
     }
 

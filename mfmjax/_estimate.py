@@ -244,14 +244,16 @@ def estimate(
     for r, (o, (notes, serious, _)) in enumerate(zip(outs, checked)):
         texts = delay_edge_notes(o.model.delays, o.model.input_names, edges)
         gridded = [o.model.input_names[k] for k, v in enumerate(edges) if len(set(v)) > 1]
+        quiet = ()  # noted, not warned (every estimate with a delay grid has it; the warning
+        # names the first doubtful finding, which this note hid)
         if gridded and o.method != "mfm":  # (the MFM stage has no std errors to qualify)
-            texts += (f"the delays of {', '.join(map(repr, gridded))} were chosen from their "
+            quiet = (f"the delays of {', '.join(map(repr, gridded))} were chosen from their "
                       "grid: the standard errors count them as known and are too small where "
                       "they are uncertain (0.38-0.43 of the spread, a 0.47 s delay on a 0.1 s "
                       "grid at 10 dB); for std errors that include them, refine the delays and "
                       "fit output_error(..., delay_uncertainty=True)",)
         warn = list(texts) + list(notes[:1] if serious else ())
-        outs[r] = replace_fields(o, notes=o.notes + texts + notes)
+        outs[r] = replace_fields(o, notes=o.notes + texts + notes + quiet)
         if warn:
             doubtful.setdefault(warn[0], []).append(r)
     for text, rs in doubtful.items():
@@ -734,9 +736,11 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
     out = []
     for r in range(R):
         tr, b, method = tried[r], best[r], methods[r]
+        gridded = len({tuple(np.asarray(x[4][0].delays).tolist()) for x in tr}) > 1
         held = {f"{x[3]} n={x[4][0].n} m={list(x[4][0].m)}" + (
+            f" delays={[float(d) for d in np.asarray(x[4][0].delays)]}" if gridded else "") + (
             " (not converged on a fold)" if any(id(m) in stalled for m in x[4]) else ""): x[1]
-            for x in tr}
+            for x in tr}  # (with a delay grid, one entry per delay: they overwrote each other)
         # the stage chosen on the held-back data, with its fit there: where a rescue returns
         # output error from SRIVC's best iterate (`notes`), that stage is SRIVC's
         held[f"chosen: {b[3]}"] = b[1]

@@ -113,11 +113,12 @@ class OnlineConfig(eqx.Module):
       measured noise variance, and an operating point needs the interval before it to exceed
       HYSTERESIS times its threshold; `"alarm"`: an interval whose prediction MSE exceeds
       ALARM times the output's measured noise variance (an RMS error of 10 noise standard
-      deviations) triggers a re-identification as an operating point does; `"spikes"`: a
-      sample whose `spike_scores` exceed OUTLIER_Z (output or any input) is replaced in the
-      buffer by the median of the OUTLIER_SIDE samples on each side before the interval's
-      statistics, identifications and predictions read it (the measured value stays in the
-      outputs and the MSE; the event's `cleaned` names it).
+      deviations) triggers a re-identification as an operating point does; `"spikes"`: an
+      output sample whose `spike_scores` exceed OUTLIER_Z is replaced in the buffer by the
+      median of the OUTLIER_SIDE samples on each side once the OUTLIER_SIDE after it have
+      arrived, before later statistics, identifications and predictions read it (the measured
+      value stays in the outputs and the MSE; the event's `cleaned` names it; the inputs are
+      not cleaned: a short pulse or PRBS bit is excitation).
     """
 
     dt: float = eqx.field(static=True)
@@ -605,7 +606,9 @@ def spike_scores(x: np.ndarray, scale_from: np.ndarray | None = None) -> np.ndar
     A step or a ramp lies near one side's median or within the trend, a smooth peak within the
     spread floor: only a sample far from both sides scores high. (a) and (c) are measured on
     the finite samples of `scale_from` (default `x`): a short `x` (an interval) may be quiet
-    where its history is not. A column with a non-finite sample in `x` scores 0.
+    where its history is not. A sample whose 11-sample window holds a NaN scores 0. (On an
+    output held at a recorder's resolution, a rare one-quantum blip scores high too: the
+    1-99 % spread and the noise are 0 there.)
     """
     x = np.asarray(x, dtype=np.float64)
     X = x.reshape(x.shape[0], -1)
@@ -623,52 +626,50 @@ def spike_scores(x: np.ndarray, scale_from: np.ndarray | None = None) -> np.ndar
         cols = [r[np.isfinite(r)] for r in ref.T]
         noise = np.array([1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2)
                           if d.size else 0.0 for d in (np.diff(r) for r in cols)])
-        lo, hi = (np.array([np.percentile(r, q) if r.size else 0.0 for r in cols])
-                  for q in (1, 99))
-    med = np.median(np.lib.stride_tricks.sliding_window_view(X, k, axis=0), axis=-1)
-    i = np.arange(k, n - k)  # med[i] is the median of X[i:i+k]
-    left, right = med[i - k], med[i + 1]
-    d = np.minimum(np.abs(X[i] - left), np.abs(X[i] - right))
-    s = np.maximum(np.maximum(noise, 0.05 * (hi - lo)), np.abs(right - left))
-    with np.errstate(invalid="ignore"):
+        lo, hi = (np.array([np.percentile(r, p) if r.size else 0.0 for r in cols])
+                  for p in (1, 99))
+    with np.errstate(invalid="ignore"):  # windows with a NaN: NaN medians, scored 0 below
+        med = np.median(np.lib.stride_tricks.sliding_window_view(X, k, axis=0), axis=-1)
+        i = np.arange(k, n - k)  # med[i] is the median of X[i:i+k]
+        left, right = med[i - k], med[i + 1]
+        d = np.minimum(np.abs(X[i] - left), np.abs(X[i] - right))
+        s = np.maximum(np.maximum(noise, 0.05 * (hi - lo)), np.abs(right - left))
         z[i] = np.where(s > 0, d / np.where(s > 0, s, 1.0), np.where(d > 0, np.inf, 0.0))
-    z[:, ~np.all(np.isfinite(X), axis=0)] = 0.0
-    return z.reshape(x.shape)
+    return np.where(np.isnan(z), 0.0, z).reshape(x.shape)  # a NaN in a window: not scored
 
 
 def _clean_spikes(state: OnlineState, j: int):
-    """Improved "spikes": (state, notes). The samples jS - OUTLIER_SIDE .. (j+1)S - OUTLIER_SIDE - 1
-    (the last OUTLIER_SIDE of interval j-1, whose right-hand side is now known, and all but the
-    last OUTLIER_SIDE of interval j, judged when interval j+1 closes) are scored by
-    `spike_scores` with OUTLIER_SIDE samples of context on each side; one above OUTLIER_Z is
-    replaced in the buffer by the median of the OUTLIER_SIDE samples on each side. A single
-    glitch otherwise stays in the running variance that the steadiness threshold scales with:
-    a 100 degC thermocouple spike at 1500 s of the forehearth's experiment 1 raised the
-    threshold so far that the second operating point was never detected, and the
-    re-identification windows holding it fitted the spike. A range with a NaN sample is left
-    alone (`spike_scores` scores nothing there); the scales come from the history's finite
-    samples."""
+    """Improved "spikes": (state, notes). The output's samples jS - OUTLIER_SIDE ..
+    (j+1)S - OUTLIER_SIDE - 1 (the last OUTLIER_SIDE of interval j-1, whose right-hand side is
+    now known, and all but the last OUTLIER_SIDE of interval j, judged when interval j+1
+    closes: a spike there is in interval j's statistics, where it can mark that interval as
+    moving and the next as an operating point) are scored by `spike_scores` with
+    OUTLIER_SIDE samples of context on each side and the scales of the last `n_start`
+    intervals; one above OUTLIER_Z is replaced in the buffer by the median of the OUTLIER_SIDE
+    samples on each side. A single glitch otherwise stays in the running variance that the
+    steadiness threshold scales with: a 100 degC thermocouple spike at 1500 s of the
+    forehearth's experiment 1 raised the threshold so far that the second operating point was
+    never detected, and the re-identification windows holding it fitted the spike. The inputs
+    are left alone: a PRBS held 2-3 samples, or a short pulse, is excitation, not a glitch (a
+    review's run replaced 237 of 1000 PRBS samples by the other level). A sample whose window
+    holds a NaN is not judged (`spike_scores`)."""
     c = state.config
     S, L, k = c.samples, state.buf_y.shape[0], OUTLIER_SIDE
     lo = max(j * S - 2 * k, 0)
-    first = max(j + 1 - c.n_start, 0) * S  # the scales from the last n_start intervals
-    hy, hu = _take(state, first, (j + 1) * S - first)
-    history = np.column_stack([hy, hu])
+    first = min(max(j + 1 - c.n_start, 0) * S, lo)  # the scales: the last n_start intervals
+    history, _ = _take(state, first, (j + 1) * S - first)
     x = history[lo - first:]
-    notes, fixed = [], x.copy()
     z = spike_scores(x, history)
-    if not np.any(z > OUTLIER_Z):
+    notes, fixed = [], x.copy()
+    for i in np.flatnonzero(z > OUTLIER_Z):
+        fixed[i] = np.median(np.concatenate([x[i - k : i], x[i + 1 : i + 1 + k]]))
+        notes.append(f"{c.output_name} = {x[i]:.6g} at t = {float(state.t0) + (lo + i) * c.dt:g} "
+                     f"(robust z = {z[i]:.3g} > {OUTLIER_Z:g}) replaced by {fixed[i]:.6g}")
+    if not notes:
         return state, notes
-    for col, name in enumerate((c.output_name,) + tuple(c.input_names)):
-        for i in np.flatnonzero(z[:, col] > OUTLIER_Z):
-            fixed[i, col] = np.median(np.concatenate([x[i - k : i, col], x[i + 1 : i + 1 + k, col]]))
-            notes.append(f"{name} = {x[i, col]:.6g} at t = {float(state.t0) + (lo + i) * c.dt:g} "
-                         f"(robust z = {z[i, col]:.3g} > {OUTLIER_Z:g}) replaced by "
-                         f"{fixed[i, col]:.6g}")
-    idx = np.arange(lo, (j + 1) * S) % L
-    by, bu = state.buf_y.copy(), state.buf_u.copy()
-    by[idx], bu[idx] = fixed[:, 0], fixed[:, 1:]
-    return eqx.tree_at(lambda s: (s.buf_y, s.buf_u), state, (by, bu)), notes
+    by = state.buf_y.copy()
+    by[np.arange(lo, (j + 1) * S) % L] = fixed
+    return eqx.tree_at(lambda s: s.buf_y, state, by), notes
 
 
 def _outlier(state: OnlineState, j: int, w: int) -> str | None:

@@ -759,17 +759,21 @@ def test_noise_variance_of_a_quantised_output_is_not_zero():
 
 
 def test_improved_mode_cleans_a_spike_out_of_the_steadiness_statistics():
-    """One 100 degC thermocouple glitch at 1500 s of the forehearth's experiment 1 (and a
-    pressure glitch at 4200 s): without "spikes" it stays in the running variance that the
-    steadiness threshold scales with, and the operating point at 5500 s is never detected
-    (the models after it never come: prediction MSE 0.48 degC^2 against 0.063 clean, in a
-    full run). Improved mode replaces each glitch in the buffer by its neighbours' median,
-    names it in the event, and keeps the measured value in the outputs. No identification
-    here (tr_corr = 1): the statistics alone, in NumPy."""
+    """One 100 degC thermocouple glitch at 1500 s of the forehearth's experiment 1: without
+    "spikes" it stays in the running variance that the steadiness threshold scales with, and
+    the operating point at 5500 s is never detected (the models after it never come:
+    prediction MSE 0.48 degC^2 against 0.063 clean, in a full run). Improved mode replaces it
+    in the buffer by its neighbours' median, names it in the event, and keeps the measured
+    value in the outputs; also a glitch right after a NaN sample (a NaN switched the scoring
+    of its whole range off). The inputs are not cleaned: a 3-sample pressure pulse stays. No
+    identification here (tr_corr = 1): the statistics alone, in NumPy. (A glitch in an
+    interval's last 5 samples is judged when the next interval closes: it is in its own
+    interval's statistics, a known limit: README.)"""
     data = mfmjax.datasets.forehearth(1, seed=0)
     y, u = data["y"].copy(), data["u"].copy()
     y[1500] += 100.0
-    u[4200, 1] += 5.0  # mbar, against set-point moves of about 1 mbar
+    y[3260], y[3280] = np.nan, y[3280] + 100.0  # interval 13 (3250-3499 s)
+    u[4200:4202, 1] += 5.0  # mbar, a 2-sample pulse (set-point moves are about 1 mbar)
 
     def run(y, u, improvements=None):
         cfg = OnlineConfig(dt=1.0, n_inputs=2, intersample=data["intersample"],
@@ -787,12 +791,13 @@ def test_improved_mode_cleans_a_spike_out_of_the_steadiness_statistics():
     spiked = run(y, u)
     assert ops(spiked) == ops(clean)
     cleaned = {e["interval"]: e["cleaned"] for e in spiked.events if e.get("cleaned")}
-    assert sorted(cleaned) == [6, 16]  # 1500 s in interval 6, 4200 s in interval 16
-    assert re.fullmatch(data["names"][0] + r" = 1263\.\d+ at t = 1500 \(robust z = [\d.e+]+ > 8\) replaced by "
-                        r"116\d\.\d+", cleaned[6][0])
-    assert cleaned[16][0].startswith(data["names"][2] + " = ") and "at t = 4200" in cleaned[16][0]
+    # 1500 s in interval 6, 3280 s in 13; not the pressure pulse
+    assert sorted(cleaned) == [6, 13] and all(len(v) == 1 for v in cleaned.values())
+    assert re.fullmatch(data["names"][0] + r" = 1263\.\d+ at t = 1500 \(robust z = [\d.e+]+ > 8\) "
+                        r"replaced by 116\d\.\d+", cleaned[6][0])
+    assert "at t = 3280" in cleaned[13][0]
     fixed = float(re.search(r"replaced by ([\d.]+)", cleaned[6][0]).group(1))
     assert abs(fixed - data["y"][1500]) < 0.5  # the neighbours' median (noise 0.05 degC)
     assert spiked.series()["y"][1500] == y[1500]  # the outputs keep the measured value
     old = run(y, u, [v for v in mfmjax._online.IMPROVEMENTS if v != "spikes"])
-    assert ops(old) == [2750.0]  # the glitch hid the second operating point
+    assert ops(old) == [2750.0]  # the glitches hid the second operating point
