@@ -596,8 +596,7 @@ OUTLIER_SIDE = 5  # samples on each side whose median a spike is compared with
 
 
 def spike_scores(x: np.ndarray, scale_from: np.ndarray | None = None) -> np.ndarray:
-    r"""Robust z-score of each sample as an isolated spike (0 for the first and last 5 samples);
-    `x` (n,) or (n, C), column by column.
+    r"""Robust z-score of each sample as an isolated spike (0 for the first and last 5 samples).
 
     The rule: $d_i = \min(|x_i - \mathrm{med}_L|, |x_i - \mathrm{med}_R|)$, the distance to the
     nearer of the medians of the 5 samples before and the 5 after, divided by the largest of
@@ -611,31 +610,23 @@ def spike_scores(x: np.ndarray, scale_from: np.ndarray | None = None) -> np.ndar
     1-99 % spread and the noise are 0 there.)
     """
     x = np.asarray(x, dtype=np.float64)
-    X = x.reshape(x.shape[0], -1)
-    ref = X if scale_from is None else np.asarray(scale_from, dtype=np.float64).reshape(
-        -1, X.shape[1])
-    k, n = OUTLIER_SIDE, X.shape[0]
-    z = np.zeros(X.shape)
-    if n < 2 * k + 1:
-        return z.reshape(x.shape)
-    if np.all(np.isfinite(ref)):
-        dx = np.diff(ref, axis=0)
-        noise = 1.4826 * np.median(np.abs(dx - np.median(dx, axis=0)), axis=0) / math.sqrt(2)
-        lo, hi = np.percentile(ref, [1, 99], axis=0)
-    else:  # a history with gaps: each column's finite samples
-        cols = [r[np.isfinite(r)] for r in ref.T]
-        noise = np.array([1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2)
-                          if d.size else 0.0 for d in (np.diff(r) for r in cols)])
-        lo, hi = (np.array([np.percentile(r, p) if r.size else 0.0 for r in cols])
-                  for p in (1, 99))
+    ref = x if scale_from is None else np.asarray(scale_from, dtype=np.float64)
+    ref = ref[np.isfinite(ref)]  # a history with gaps: its finite samples
+    k, n = OUTLIER_SIDE, x.size
+    z = np.zeros(n)
+    if n < 2 * k + 1 or ref.size < 2:
+        return z
+    dx = np.diff(ref)
+    noise = 1.4826 * np.median(np.abs(dx - np.median(dx))) / math.sqrt(2)
+    lo, hi = np.percentile(ref, [1, 99])
     with np.errstate(invalid="ignore"):  # windows with a NaN: NaN medians, scored 0 below
-        med = np.median(np.lib.stride_tricks.sliding_window_view(X, k, axis=0), axis=-1)
-        i = np.arange(k, n - k)  # med[i] is the median of X[i:i+k]
+        med = np.median(np.lib.stride_tricks.sliding_window_view(x, k), axis=1)  # of x[i:i+k]
+        i = np.arange(k, n - k)
         left, right = med[i - k], med[i + 1]
-        d = np.minimum(np.abs(X[i] - left), np.abs(X[i] - right))
+        d = np.minimum(np.abs(x[i] - left), np.abs(x[i] - right))
         s = np.maximum(np.maximum(noise, 0.05 * (hi - lo)), np.abs(right - left))
         z[i] = np.where(s > 0, d / np.where(s > 0, s, 1.0), np.where(d > 0, np.inf, 0.0))
-    return np.where(np.isnan(z), 0.0, z).reshape(x.shape)  # a NaN in a window: not scored
+    return np.where(np.isnan(z), 0.0, z)
 
 
 def _clean_spikes(state: OnlineState, j: int):

@@ -382,11 +382,12 @@ def test_spike_scores_rule():
         z = spike_scores(spiked)
         assert int(np.argmax(z)) == 100 and z[100] > OUTLIER_Z, name
     # a NaN leaves only the samples whose 11-sample window holds it unscored (it zeroed the
-    # whole column); columns apart, with the scales of their own history
+    # whole signal); scales from another history (`scale_from`)
     gap = smooth["noisy step"].copy()
     gap[40], gap[120] = np.nan, gap[120] + 500.0
-    z = spike_scores(np.column_stack([gap, smooth["ramp"]]))
-    assert np.all(z[35:46, 0] == 0) and z[120, 0] > OUTLIER_Z and z[:, 1].max() < OUTLIER_Z
+    z = spike_scores(gap)
+    assert np.all(z[35:46] == 0) and z[120] > OUTLIER_Z
+    assert spike_scores(smooth["ramp"], np.concatenate([smooth["ramp"], [np.nan]])).max() < OUTLIER_Z
 
 
 def test_first_window_with_a_spike_is_refused():
