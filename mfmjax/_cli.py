@@ -548,11 +548,16 @@ def _refine_report(sig, model, vary_delays: bool) -> dict:
         "parameters": {name: {"value": float(v), "std_error": float(e)}
                        for name, v, e in zip(oe.names, oe.theta, oe.std_errors)},
         "covariance": oe.covariance,
-        # null where no delay was counted (none fitted, or all of them 0)
-        "delay_std_errors": None if oe.delay_std_errors is None or not np.any(
-            np.isfinite(oe.delay_std_errors)) else [
-            float(v) if math.isfinite(v) else None for v in oe.delay_std_errors],
+        "delay_std_errors": _delay_std_json(oe.delay_std_errors),
     }
+
+
+def _delay_std_json(errors):
+    """Each input's delay std error for JSON: null where none was counted (none fitted, or
+    all of them 0), and null for an input whose delay was not."""
+    if errors is None or not np.any(np.isfinite(errors)):
+        return None
+    return [float(v) if math.isfinite(v) else None for v in errors]
 
 
 def _print_report(rep: dict) -> None:
@@ -998,6 +1003,7 @@ def _cmd_search(args):
                   "n": est.model.n, "m": list(est.model.m), "notes": list(est.notes),
                   "parameters": {k: {"value": float(v), "std_error": float(e)} for k, v, e in
                                  zip(est.names, _free_values(est.model), est.std_errors)},
+                  "delay_std_errors": _delay_std_json(est.delay_std_errors),
                   "covariance": est.covariance}
     else:
         result = mfmjax.search(sig, progress=_Progress("search"), identify=ident, **kwargs)

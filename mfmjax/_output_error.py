@@ -47,6 +47,7 @@ class OutputErrorFit(eqx.Module):
     # with `delay_uncertainty`: each input's delay std error (NaN for a delay of 0, not
     # counted); None without it (the delays count as known)
     delay_std_errors: np.ndarray | None = None
+    delays_fitted: bool = False  # `fit_delays`: the model's nonzero delays were fitted too
 
     def summary(self) -> str:
         """Parameters with standard errors, E before and after, and the solver's verdict."""
@@ -58,8 +59,9 @@ class OutputErrorFit(eqx.Module):
             for name, v, e in zip(self.model.input_names, np.asarray(self.model.delays),
                                   self.delay_std_errors):
                 if np.isfinite(e):
-                    lines.append(f"{'delay ' + name:<12}{v:>16.6e}{e:>14.3e}  (held; its "
-                                 "uncertainty is in the std errors above)")
+                    lines.append(f"{'delay ' + name:<12}{v:>16.6e}{e:>14.3e}" + (
+                        "  (fitted)" if self.delays_fitted else
+                        "  (held; its uncertainty is in the std errors above)"))
         lines.append(f"E: {self.E_start:.6e} (start) -> {self.E:.6e}")
         lost = [n for n, e in zip(self.names, self.std_errors) if not np.isfinite(e)]
         if lost:
@@ -163,29 +165,40 @@ class _Residual(eqx.Module):
     start: jax.Array  # first sample of the window (a value: a new window is not a new program)
     valid: jax.Array  # the window's own length (a value); residuals beyond it are zero
     length: int = eqx.field(static=True)  # the window's bucket (`padded_window`)
+    # `fit_delays`: z ends with one entry per input, its delay = start's + delay_scale z (at
+    # least 0; `free` says which move); None: the delays are held (no such entries)
+    delay_scale: jax.Array | None = None
 
     @property
     def size(self) -> int:
-        """Unknowns z: the padded parameters and initial state."""
-        return self.theta0.shape[-1] + self.x_init.shape[-1]
+        """Unknowns z: the padded parameters and initial state (and the delays, if fitted)."""
+        K = 0 if self.delay_scale is None else self.delay_scale.shape[-1]
+        return self.theta0.shape[-1] + self.x_init.shape[-1] + K
 
     def __call__(self, z, args):
-        p = self.theta0.shape[0]
+        p, n = self.theta0.shape[0], self.x_init.shape[0]
         z = jnp.where(self.free, z, 0.0)  # padded coefficients are slots of the realisation
         c = padded.with_theta(self.c, self.theta0 + self.scale * z[:p], self.signals.offset)
+        if self.delay_scale is not None:
+            c = dict(c, delays=delays_at(self.c["delays"], self.delay_scale, z[p + n :]))
         (ss, Phi, drive, direct), _ = padded.padded_forced(self.signals, c,
                                                            self.start + jnp.arange(self.length))
 
         def step(x, d):
             return small_matmul(Phi, x) + d, small_matmul(ss.C, x)[0]
 
-        _, ys = jax.lax.scan(step, self.x_init + self.x_scale * z[p:], drive)
+        _, ys = jax.lax.scan(step, self.x_init + self.x_scale * z[p : p + n], drive)
         return jnp.where(jnp.arange(self.length) < self.valid, self.y - (ys + direct), 0.0)
+
+
+def delays_at(start, scale, z):
+    """The fitted delays: the start's moved by `scale * z`, dead times (at least 0)."""
+    return jnp.maximum(start + scale * z, 0.0)
 
 
 def output_error(
     signals: Signals, model: Model, *, window=None, max_steps: int = 100, rtol: float = 1e-10,
-    atol: float = 1e-12, delay_uncertainty: bool = False,
+    atol: float = 1e-12, delay_uncertainty: bool = False, fit_delays: bool = False,
 ) -> OutputErrorFit:
     r"""Output-error (simulation-residual) estimate started from `model` (the MFM estimate).
 
@@ -203,6 +216,10 @@ def output_error(
     simulation), the parameters' covariance is marginal over them, and `delay_std_errors` holds
     theirs (with a delay fitted by `refine` on a 10 dB record, std errors that held it known
     were 0.43-0.52 of the estimates' spread, 56-67 % coverage of nominal 95 % intervals).
+    `fit_delays`: every nonzero delay of the start is fitted too (a delay of 0 is held: no
+    dead time), jointly with the parameters (their Jacobian columns from the same forward-mode
+    pass; delays stay >= 0), the covariance is the joint one as with `delay_uncertainty`, and
+    the model carries the fitted delays: a delay picked from a search's grid moves off it.
     A failed solve returns the starting model with the solver's code in `result`. A fit that did
     not converge says so: `converged` is False, `summary()` prints NOT CONVERGED, and the call
     warns. An unstable start has its right-half-plane poles mirrored first (`stabilised`).
@@ -217,18 +234,19 @@ def output_error(
     """
     from ._boundary import check_output_error
 
+    for name, flag in (("delay_uncertainty", delay_uncertainty), ("fit_delays", fit_delays)):
+        if not isinstance(flag, bool):
+            raise TypeError(f"output_error(): {name} must be True or False, got {flag!r}")
     if not isinstance(signals, Signals):
         if delay_uncertainty:
             raise ValueError("output_error(): delay_uncertainty is for one record (call "
-                             "output_error on each record to get it)")
-        return _output_error_batch(signals, model, window, max_steps, rtol, atol)
-    if not isinstance(delay_uncertainty, bool):
-        raise TypeError(f"output_error(): delay_uncertainty must be True or False, got "
-                        f"{delay_uncertainty!r}")
+                             "output_error on each record, or give fit_delays=True)")
+        return _output_error_batch(signals, model, window, max_steps, rtol, atol, fit_delays)
     check_output_error(signals, window_=window, max_steps=max_steps, rtol=rtol, atol=atol)
     _eager_only(signals, model)
     _b.delays_note("output_error", model, signals)
-    residual, meta = _prepare(signals, model, window, rehearse=(max_steps, rtol, atol))
+    residual, meta = _prepare(signals, model, window, rehearse=(max_steps, rtol, atol),
+                              fit_delays=fit_delays)
     return _finish(residual, meta, _lm(residual, *_lm_arguments(residual.size, max_steps, rtol,
                                                                 atol)), delay_uncertainty)
 
@@ -241,7 +259,7 @@ def _eager_only(signals: Signals, model) -> None:
     _b.eager_only("output_error", signals, model)
 
 
-def _output_error_batch(signals, model, window, max_steps, rtol, atol) -> list:
+def _output_error_batch(signals, model, window, max_steps, rtol, atol, fit_delays) -> list:
     """`output_error` on a list of records (its docstring): checked like one record each."""
     from ._batch import as_records
     from ._boundary import check_output_error
@@ -262,7 +280,8 @@ def _output_error_batch(signals, model, window, max_steps, rtol, atol) -> list:
                              f"records have {r.n_inputs}; start from models of these signals")
     with warnings.catch_warnings():  # one warning for the batch, below
         warnings.simplefilter("ignore")
-        fits = output_error_many(records, models, max_steps=max_steps, rtol=rtol, atol=atol)
+        fits = output_error_many(records, models, max_steps=max_steps, rtol=rtol, atol=atol,
+                                 fit_delays=fit_delays)
     bad = [i for i, f in enumerate(fits) if f is None or not f.converged]
     if bad:
         warnings.warn(f"output_error(): {len(bad)} of {len(fits)} fits did not converge "
@@ -280,8 +299,9 @@ def _rehearsal(parts: tuple, n_max: int, bound: int, limits: tuple):
     step from a stand-in residual (the start's parts, initial state 0 and its scale 1), while
     the start observer runs on a second thread (`_prepare`): the two first compiles overlap.
     None for a layout seen before."""
-    c, sig, yv, th0, sc, free, k0, length = parts
-    stand_in = (c, sig, yv, th0, sc, np.zeros(n_max), np.ones(n_max), free, k0, length)
+    c, sig, yv, th0, sc, free, k0, length, *delay_scale = parts
+    stand_in = (c, sig, yv, th0, sc, np.zeros(n_max), np.ones(n_max), free, k0, length,
+                *delay_scale)
     key = (jax.tree.structure(stand_in), bound, tuple(
         (np.shape(x), getattr(x, "dtype", type(x))) for x in jax.tree.leaves(stand_in)))
     if key in _REHEARSED:
@@ -290,7 +310,8 @@ def _rehearsal(parts: tuple, n_max: int, bound: int, limits: tuple):
 
     def rehearse():
         try:
-            residual = _Residual(*jax.device_put(stand_in), bound)
+            residual = _Residual(*jax.device_put(stand_in[:10]), bound,
+                                 *jax.device_put(stand_in[10:]))
             _lm(residual, *_lm_arguments(residual.size, 0, *limits[1:]))
         except Exception:  # noqa: BLE001 (speculative: the real call compiles what it missed)
             pass
@@ -306,14 +327,17 @@ def _lm_arguments(size: int, max_steps, rtol, atol):
 
 
 def _prepare(signals: Signals, model: Model, window, n_max: int | None = None,
-             rehearse: tuple | None = None, bucket: int | None = None):
+             rehearse: tuple | None = None, bucket: int | None = None,
+             fit_delays=False):
     """The scaled residual of `output_error` at its start (the initial state from the
     observer, eq. 14) and what `_finish` needs. The model is zero-padded to order `n_max` with
     numerators of order n_max (every structure of that order: one program), or by default to
     its own n and largest m_k (no padded unknowns in the forward-mode Jacobian, whose cost
     grows with their count). Raises ValueError when the start's simulation overflows or its
     state is unobservable on the window. `rehearse` (`output_error`'s limits): on a layout's
-    first call, `_lm` compiles while the observer runs (`_rehearsal`)."""
+    first call, `_lm` compiles while the observer runs (`_rehearsal`). `fit_delays` (True, or
+    one bool per input): z ends with a delay entry per input, in samples, free where asked
+    for and the start's delay is nonzero."""
     from ._batch import overlapped
     from ._observers import checked, padded_window, validation_window
 
@@ -334,19 +358,23 @@ def _prepare(signals: Signals, model: Model, window, n_max: int | None = None,
     idx = padded.indices(model, n_max, m_max + 1)
     p = n_max + model.n_inputs * (m_max + 1) + int(model.has_offset)
     scale = np.maximum(np.abs(theta0), 1e-8 * max(np.max(np.abs(theta0)), 1e-300))
-    free = np.concatenate([padded.free(c, model.has_offset), np.arange(n_max) < model.n])
+    fit = np.broadcast_to(np.asarray(fit_delays, bool), (model.n_inputs,))
+    slots = bool(np.any(fit))  # the delays' entries of z (free where asked for and nonzero)
+    free = np.concatenate([padded.free(c, model.has_offset), np.arange(n_max) < model.n]
+                          + ([fit & (np.asarray(model.delays, np.float64) > 0)] if slots else []))
+    dscale = (np.full(model.n_inputs, float(signals.dt)),) if slots else ()
     th0, sc, xs = np.zeros(p), np.ones(p), np.ones(n_max)
     th0[idx], sc[idx] = theta0, scale
     # the zero-padded observer: one program for every structure of this padded shape
     obs = checked(overlapped(lambda: padded.observe_candidate(
         sig, c, np.int32(k0), bound, np.int32(length), np.int32(length)), None if rehearse is None
-        else _rehearsal((c, sig, yv, th0, sc, free, np.int32(k0), np.int32(length)), n_max,
-                        bound, rehearse)), "output_error")
+        else _rehearsal((c, sig, yv, th0, sc, free, np.int32(k0), np.int32(length), *dscale),
+                        n_max, bound, rehearse)), "output_error")
     x_init = np.asarray(obs.x_initial)  # zero beyond n
     x_scale = np.maximum(np.abs(x_init[: model.n]), 1e-6 * float(np.std(yw)) + 1e-300)
     xs[: model.n] = x_scale
     residual = _Residual(*jax.device_put((c, sig, yv, th0, sc, x_init, xs, free, np.int32(k0),
-                                          np.int32(length))), bound)
+                                          np.int32(length))), bound, *jax.device_put(dscale))
     return residual, (original, model, was_unstable, names, theta0, scale, x_scale,
                       x_init[: model.n], idx)
 
@@ -406,18 +434,26 @@ def _finish(residual, meta, solved, delay_uncertainty: bool = False) -> OutputEr
     # J = d r / d z; parameters = theta0 + scale * z
     Jp = J[:, live] / np.concatenate([scale, x_scale])[None, :]
     delays = np.asarray(residual.c["delays"])
+    fitted = residual.delay_scale is not None
     timed = np.flatnonzero(delays > 0) if delay_uncertainty else np.zeros(0, int)
-    if timed.size:  # the delays' columns, at the point returned (z, or the start's zeros)
+    if fitted:  # their columns are z's last K (d residual / d z_k, z_k in delay_scale units)
+        K, d_scale = delays.size, np.asarray(residual.delay_scale)
+        timed = np.flatnonzero(np.asarray(residual.free)[-K:])
+        delays = np.asarray(delays_at(delays, d_scale, z[-K:]))
+        Jp = np.concatenate([Jp, J[:, z.size - K + timed] / d_scale[timed]], axis=1)
+    elif timed.size:  # the delays' columns, at the point returned (z, or the start's zeros)
         Jd = np.asarray(_delay_jacobian(residual, device(z)))[:, timed]
         Jp = np.concatenate([Jp, Jd], axis=1)
     dof = max(length - Jp.shape[1], 1)
     sigma2 = float(np.sum(r**2)) / dof
     cov = gauss_newton_covariance(Jp, sigma2)
     delay_std = None
-    if delay_uncertainty:
+    if delay_uncertainty or fitted:
         delay_std = np.full(delays.shape, np.nan)
         delay_std[timed] = np.sqrt(np.diag(cov)[Jp.shape[1] - timed.size :])
     new = _fitted(model, theta)  # theta: the start's own parameters when not `ok`
+    if fitted:  # (the start's delays where not `ok`: z is zero there)
+        new = replace_fields(new, delays=device(delays))
     # fitted with the signals' intersample rules: the model carries them (as SRIVC's), so
     # `observe` and `simulate` reproduce the fit's E
     new = replace_fields(new, intersample=tuple(residual.signals.intersample))
@@ -438,24 +474,26 @@ def _finish(residual, meta, solved, delay_uncertainty: bool = False) -> OutputEr
                       "the window and the start, or validate it before use", stacklevel=3)
     return OutputErrorFit(new, original, x0, names, theta, np.sqrt(np.diag(cov))[:p_theta],
                           cov[:p_theta, :p_theta], sigma2, E0, E1, code, int(n_steps),
-                          bool(converged), bool(was_unstable), delay_std)
+                          bool(converged), bool(was_unstable), delay_std, fitted)
 
 
 def output_error_many(records, models, *, n_max: int | None = None, max_steps: int = 100,
                       rtol: float = 1e-10, atol: float = 1e-12,
-                      bucket: int | None = None) -> list:
+                      bucket: int | None = None, fit_delays=False) -> list:
     """`output_error(records[i], models[i])` for every pair (whole records), the
     Levenberg-Marquardt iterations of each chunk of pairs of one padded shape in one compiled
     call (`lax.map`, chunks as in `_batch.groups`); with `n_max` every structure of order
     <= n_max has that shape (`_prepare`); `bucket`: the records' padded length (at least
     theirs; default their `record_bucket`). An entry is None where the start could not be
-    simulated (overflow, unobservable)."""
+    simulated (overflow, unobservable). `fit_delays` as in `output_error`, or one bool per
+    input (the inputs whose nonzero delays are fitted)."""
     from ._batch import groups, in_parallel, stack, unstack
 
     prepared = []
     for sig, model in zip(records, models):
         try:
-            prepared.append(_prepare(sig, model, None, n_max, bucket=bucket))
+            prepared.append(_prepare(sig, model, None, n_max, bucket=bucket,
+                                     fit_delays=fit_delays))
         except ValueError:
             prepared.append(None)
     out = [None] * len(prepared)

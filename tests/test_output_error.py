@@ -2,6 +2,7 @@
 
 import warnings
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -359,3 +360,50 @@ def test_delay_uncertainty_counts_a_fitted_delay_in_the_std_errors():
     assert np.linalg.norm(J - fd) <= 1e-6 * np.linalg.norm(fd)
     with pytest.raises(ValueError, match=r"delay_uncertainty is for one record"):
         mfmjax.output_error([sig, sig], start, delay_uncertainty=True)
+
+
+def test_fit_delays_fits_the_nonzero_delays_with_the_parameters():
+    """`fit_delays=True`: the nonzero delays are unknowns of the same Levenberg-Marquardt fit
+    (their Jacobian columns from the same forward-mode pass), the model carries the fitted
+    delays, a zero delay is held (NaN std error), and the covariance is the joint one. Started
+    on a grid point (0.5 s) of a 0.47 s delay, noise-free: the delay and the parameters to the
+    truth (LM's rtol 1e-10 on z; 1e-7 allows for the conditioning of the joint fit). On noisy
+    data the std errors equal those of `delay_uncertainty=True` held at the fitted delay (the
+    same Gauss-Newton covariance at the same optimum, reached by two paths to rtol 1e-10: 1e-5
+    relative), and a list of records is fitted as each alone (1e-12)."""
+    true = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0], [0.5]], delays=[0.47, 0.0],
+                                   intersample=["zoh", "zoh"])
+    T, dt = 800, 0.05
+    rng = np.random.default_rng(0)
+    u = np.column_stack([np.repeat(rng.normal(size=T // 20 + 1), 20)[:T],
+                         np.repeat(rng.normal(size=T // 25 + 1), 25)[:T]])
+    y0 = np.asarray(mfmjax.simulate(true, u, dt=dt))
+    start = Model.from_coefficients([2.2, 3.3, 1.0], [[1.1], [0.45]], delays=[0.5, 0.0],
+                                    intersample=["zoh", "zoh"])
+
+    def record(y):
+        return mfmjax.Signals(y, u, dt=dt, intersample=["zoh", "zoh"], delays=[0.5, 0.0],
+                              offset=False)
+
+    exact = mfmjax.output_error(record(y0), start, fit_delays=True)
+    assert exact.converged and exact.delays_fitted
+    np.testing.assert_allclose(np.asarray(exact.model.delays), [0.47, 0.0], rtol=1e-7,
+                               atol=1e-9)
+    np.testing.assert_allclose(exact.theta, [2.0, 3.0, 1.0, 0.5], rtol=1e-7)
+    held = mfmjax.output_error(record(y0), start)
+    assert held.E > 1e3 * exact.E  # held at the grid point, the fit cannot reach the data
+    assert np.isnan(exact.delay_std_errors[1]) and "(fitted)" in exact.summary()
+
+    noisy = [record(y0 + np.std(y0) * 10 ** (-10 / 20) * rng.standard_normal(T))
+             for _ in range(2)]
+    fits = mfmjax.output_error(noisy, start, fit_delays=True)
+    for sig, fit in zip(noisy, fits):
+        alone = mfmjax.output_error(sig, start, fit_delays=True)
+        np.testing.assert_allclose(fit.theta, alone.theta, rtol=1e-12)
+        np.testing.assert_allclose(fit.delay_std_errors, alone.delay_std_errors, rtol=1e-12)
+        d = np.asarray(alone.model.delays)
+        assert abs(d[0] - 0.47) < 4 * alone.delay_std_errors[0] and d[1] == 0.0
+        at = mfmjax.output_error(eqx.tree_at(lambda q: q.delays, sig, jnp.asarray(d)),
+                                 alone.model, delay_uncertainty=True)
+        np.testing.assert_allclose(at.std_errors, alone.std_errors, rtol=1e-5)
+        np.testing.assert_allclose(at.delay_std_errors, alone.delay_std_errors, rtol=1e-5)

@@ -134,6 +134,9 @@ def test_search_estimate_save_keeps_the_covariance_for_report(files, capsys):
     assert len(said) == 1 and edge in said[0], cap.err
     est = json.loads(cap.out)["estimated"]
     assert (est["n"], est["m"]) == (2, [0]) and any(edge in note for note in est["notes"])
+    # the delay picked from the grid is then fitted with the parameters, its std error kept
+    assert est["method"] == "srivc + output error" and est["delay_std_errors"][0] > 0
+    assert abs(est["model"]["delays"][0] - 0.15) < 4 * est["delay_std_errors"][0]
     doc = json.loads(saved.read_text())
     assert doc["covariance"]["names"] == ["a_0", "a_1", "b_10"]
     assert main(["report", str(saved), str(folder / "data.csv"), *ARGS, "-o",
