@@ -662,6 +662,8 @@ def saved_covariance(path, model: Model):
 
     cov = load_covariance(path, model)
     if cov is None:
-        return None, ("no bands: the model file has no covariance (save it with "
-                      "save_model(model, path, covariance=estimate.covariance))")
+        return None, ("no bands: the model file has no covariance (none is saved for a "
+                      "model without finite standard errors, e.g. an estimate whose method is "
+                      "'mfm'; from Python: save_model(model, path, "
+                      "covariance=estimate.covariance) where they are finite)")
     return cov, "bands: 99 % (+-2.576 sigma, delta method on the saved covariance)"

@@ -166,6 +166,13 @@ def estimate(
     """
     records, single = as_records("estimate", signals)
     _b.eager_only("estimate", records, h, n, N, M, m, delays, identify, validate)
+    for r, rec in enumerate(records):  # (it reached fit_percent's error, named "y")
+        y = np.asarray(rec.y)
+        if y.size and np.all(y == y[0]):
+            raise ValueError(f"estimate(): the output {rec.output_name!r}"
+                             f"{'' if single else f' of record {r}'} is constant ({y[0]:.6g}) "
+                             "over the whole record: there is no response to identify; check "
+                             "the column (a frozen or disconnected sensor?)")
     if delays is None:  # the batch is planned once: record 0's delays served every record
         for i, r in enumerate(records[1:], 1):
             if not np.array_equal(np.asarray(r.delays), np.asarray(records[0].delays)):
@@ -1131,9 +1138,15 @@ def estimate_outputs(records, **kwargs) -> tuple[Estimate, ...]:
     for i, r in enumerate(records[1:], 1):
         same = (r.dt == first.dt and r.n_samples == first.n_samples
                 and r.u.shape == first.u.shape and bool(np.array_equal(r.u, first.u)))
-        if not same:
-            raise ValueError(f"estimate_outputs(): record {i} does not share record 0's inputs "
-                             "and sampling; give one Signals per output of one experiment")
+        if not same:  # what differs (a NaN row dropped by resample= shortens one output)
+            raise ValueError(
+                f"estimate_outputs(): record {i} ({r.output_name!r}: {r.n_samples} samples "
+                f"from t0 = {r.t0:.15g}, dt = {r.dt:.15g}) does not share record 0's inputs "
+                f"and sampling ({first.output_name!r}: {first.n_samples} samples from t0 = "
+                f"{first.t0:.15g}, dt = {first.dt:.15g}"
+                + ("" if r.n_samples != first.n_samples or r.u.shape != first.u.shape
+                   or r.dt != first.dt else "; the inputs' values differ")
+                + "); give one Signals per output of one experiment, on one time grid")
         for what, mine, theirs in [("intersample rules", r.intersample, first.intersample),
                                    ("input names", r.input_names, first.input_names),
                                    ("start time t0", r.t0, first.t0)]:
@@ -1141,4 +1154,14 @@ def estimate_outputs(records, **kwargs) -> tuple[Estimate, ...]:
                 raise ValueError(f"estimate_outputs(): record {i} has other {what} than "
                                  f"record 0 ({mine!r} against {theirs!r}); build every output's "
                                  "record from one experiment with the same settings")
-    return tuple(estimate(r, **kwargs) for r in records)
+    out = []
+    for r in records:  # each warning names its output (the same text came once per output)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            out.append(estimate(r, **kwargs))
+        for w in caught:
+            text = str(w.message)
+            if text.startswith("estimate()"):
+                text = f"estimate_outputs(), output {r.output_name!r}" + text[len("estimate()"):]
+            warnings.warn_explicit(text, w.category, w.filename, w.lineno)
+    return tuple(out)

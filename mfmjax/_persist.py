@@ -109,10 +109,15 @@ def save_model(model: Model, path, *, covariance=None, record=None) -> None:
 
         names = free_parameters(model)[0]
         cov = np.asarray(covariance, dtype=np.float64)
-        if cov.shape != (len(names), len(names)) or not np.all(np.isfinite(cov)):
+        if cov.shape != (len(names), len(names)):
             raise ValueError(f"save_model(): covariance must be a finite ({len(names)}, "
                              f"{len(names)}) matrix ordered as {list(names)} (got shape "
                              f"{cov.shape})")
+        if not np.all(np.isfinite(cov)):  # (it named the shape, which was right)
+            raise ValueError("save_model(): covariance has non-finite entries (NaN or inf): a "
+                             "model without standard errors (an estimate whose method is "
+                             "'mfm') or with a parameter the data do not determine has no "
+                             "usable covariance; save the model without it (covariance=None)")
         doc["covariance"] = {"names": list(names), "matrix": cov.tolist()}
     if record is not None:
         dt = record.get("dt") if isinstance(record, dict) else None

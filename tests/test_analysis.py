@@ -474,6 +474,10 @@ def test_save_model_keeps_an_optional_covariance(tmp_path):
         mfmjax.load_covariance(tmp_path / "m.json", other)
     with pytest.raises(ValueError, match=r"save_model\(\): covariance must be a finite \(4, 4\)"):
         mfmjax.save_model(model, tmp_path / "x.json", covariance=np.eye(2))
+    # a plain MFM estimate's NaN covariance: the message named the (right) shape
+    with pytest.raises(ValueError, match=r"save_model\(\): covariance has non-finite entries "
+                                         r"\(NaN or inf\): a model without standard errors"):
+        mfmjax.save_model(model, tmp_path / "x.json", covariance=np.full((4, 4), np.nan))
     import json  # a hand-edited matrix: refused by file, not later by step_response
 
     doc = json.loads((tmp_path / "m.json").read_text())

@@ -4,6 +4,8 @@ import os
 import re
 import warnings
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import SHARED
@@ -612,6 +614,20 @@ def test_estimate_keeps_srivc_when_the_rescue_does_not_converge(noisy, monkeypat
     assert "NOT CONVERGED" in est.summary()
 
 
+def test_estimate_refuses_a_constant_output_by_name():
+    """A frozen sensor's column: `estimate` raised fit_percent()'s error about an output "y"
+    (an audit of 2026-11-28); it now names estimate, the output and the record."""
+    u = np.repeat(np.random.default_rng(0).normal(size=21), 10)[:200, None]
+    frozen = mfmjax.Signals(np.full(200, 2.0), u, dt=0.1, output_name="furnace_T3")
+    with pytest.raises(ValueError, match=r"estimate\(\): the output 'furnace_T3' is constant "
+                                         r"\(2\) over the whole record"):
+        mfmjax.estimate(frozen, h=2.0)
+    with pytest.raises(ValueError, match=r"estimate\(\): the output 'furnace_T3' of record 1 "
+                                         r"is constant"):
+        mfmjax.estimate([eqx.tree_at(lambda q: q.y, frozen, jnp.asarray(u[:, 0])), frozen],
+                        h=2.0)
+
+
 def test_estimate_says_when_its_inputs_are_linearly_dependent():
     """u2 = 2 u1: `estimate` returned b = 1e12 with standard errors of 44, status ok and
     "converged". It now warns, says so in its notes and flags the model ILL_CONDITIONED."""
@@ -628,6 +644,16 @@ def test_estimate_says_when_its_inputs_are_linearly_dependent():
     assert int(est.model.status) & Status.ILL_CONDITIONED
     assert any("linearly dependent" in note for note in est.notes)
     assert "linearly dependent" in est.summary()
+    # two outputs of the experiment: each warning names its output (an audit of 2026-11-28:
+    # the same text came once per output, naming none)
+    other = mfmjax.Signals(y, np.c_[u, 2 * u], dt=0.1, intersample="zoh", offset=False,
+                           output_name="y2")
+    with pytest.warns(UserWarning) as caught:
+        mfmjax.estimate_outputs([sig, other], h=(5.0,), n=(2,), N=(4,), M=(4,),
+                                m=[(0,), (0,)])
+    said = [str(w.message) for w in caught if "linearly dependent" in str(w.message)]
+    assert [text.split(":")[0] for text in said] == ["estimate_outputs(), output 'y'",
+                                                     "estimate_outputs(), output 'y2'"], said
     # delays that separate the inputs (u2 one second later; the same kernel bucket, so the
     # same programs): the returned model is checked under its own delays (it was flagged
     # from the record's, 0 and 0)
