@@ -965,3 +965,33 @@ def test_estimate_chooses_a_delay_on_srivc_not_on_the_mfm_ranking():
     assert kept.method == "srivc" and kept.delay_std_errors is None
     assert any("were chosen from their grid: the standard errors count them as known"
                in note for note in kept.notes)
+
+
+def test_estimate_on_an_identify_window_reads_nothing_after_it():
+    """A record cut mid-transient (not at rest: output error from SRIVC's estimate is
+    returned), estimated on its first 600 samples: that output-error stage ran on the whole
+    record, so the data after the window changed the model (a_0 2.004 -> 0.561 with them
+    reversed and tripled there), unsaid. It now fits the estimation window as every other
+    stage: the same model (1e-8 relative: the search's convolutions run over the record,
+    rounding differs at 1e-11)."""
+    true = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0]], intersample=["zoh"])
+    T, dt = 900, 0.05
+    rng = np.random.default_rng(3)
+    u = np.repeat(rng.normal(size=T // 20 + 2), 20)[: T + 40, None]
+    y = np.asarray(mfmjax.simulate(true, u, dt=dt))[40:] + 0.01 * rng.standard_normal(T)
+    other = y.copy()
+    other[600:] = 3.0 * other[600:][::-1]
+    ests = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for yy in (y, other):
+            sig = mfmjax.Signals(yy, u[40:], dt=dt, intersample=["zoh"], offset=False)
+            ests.append(mfmjax.estimate(sig, identify=(0.0, 599 * dt), h=1.0, n=(2,), N=3,
+                                        M=3, m=[[0]]))
+    assert all(e.method == "srivc + output error" for e in ests)
+    assert any("output error from SRIVC's estimate is returned" in n for n in ests[0].notes)
+    np.testing.assert_allclose(np.asarray(ests[1].model.a), np.asarray(ests[0].model.a),
+                               rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(ests[1].model.b[0]), np.asarray(ests[0].model.b[0]),
+                               rtol=1e-8)
+    np.testing.assert_allclose(ests[0].model.a, [2.0, 3.0, 1.0], rtol=0.02)
