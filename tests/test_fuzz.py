@@ -327,12 +327,14 @@ def test_fuzz_refine(vary, max_steps, bounds):
 @fuzzes("output_error", "OutputErrorFit", "cramer_rao")
 @FEW
 @given(window=st.one_of(st.none(), junk),
-       max_steps=st.one_of(st.just(3), junk), sigma=st.one_of(st.floats(1e-3, 1.0), junk))
-@example(window=None, max_steps=3, sigma=0.1)
-def test_fuzz_output_error(window, max_steps, sigma):
+       max_steps=st.one_of(st.just(3), junk), sigma=st.one_of(st.floats(1e-3, 1.0), junk),
+       fit_delays=st.one_of(st.just(False), junk))
+@example(window=None, max_steps=3, sigma=0.1, fit_delays=False)
+def test_fuzz_output_error(window, max_steps, sigma, fit_delays):
     sig = record()
     ok, oe = outcome(lambda: mfmjax.output_error(sig, fitted(), window=window,
-                                                 max_steps=max_steps), ["output_error()"])
+                                                 max_steps=max_steps, fit_delays=fit_delays),
+                     ["output_error()"])
     if ok:
         assert isinstance(oe, mfmjax.OutputErrorFit)
         honest_model(oe.model)
