@@ -30,6 +30,7 @@ from ._modulating import ModulatingFunction, as_values
 from ._observers import (
     fit_percent,
     masked_fit_percent,
+    observation,
     observe_forced,
     padded_window,
     validation_window,
@@ -156,9 +157,22 @@ def _host_settings(x0: dict, box: dict, z) -> dict:
     return s
 
 
+EDGE = 0.02  # a start nearer its box's edge (share of the range) starts this far inside
+
+
 def _logit(x, lo, hi):
-    r = np.clip((np.asarray(x, dtype=np.float64) - lo) / (hi - lo), 1e-6, 1 - 1e-6)
+    """z of the setting x in [lo, hi] (its sigmoid's inverse), at least `EDGE` of the range
+    inside the box: at the edge the sigmoid's slope vanishes (a start at delay 0 or N = n,
+    clipped to 1e-6 of the range, had a gradient 1e-6 of its size and BFGS stopped there after
+    2 steps, "successful")."""
+    r = np.clip((np.asarray(x, dtype=np.float64) - lo) / (hi - lo), EDGE, 1 - EDGE)
     return np.log(r / (1 - r))
+
+
+def _moved(x, lo, hi) -> bool:
+    """Whether `_logit` moves the start x inside the box."""
+    r = (np.asarray(x, dtype=np.float64) - lo) / (hi - lo)
+    return bool(np.any((r < EDGE) | (r > 1 - EDGE)))
 
 
 class _Objective(eqx.Module):
@@ -204,7 +218,9 @@ def refine(
     "h", "N", "M", "delays"). Default bounds: h in [h0/4, min(4 h0, record/3)], N and M in
     [n, 12], delays in [0, max(2 tau0, tau0 + 20 dt)] (and below record/4); `bounds` overrides
     any of them as {"h": (lo, hi), ...}. Every setting is a sigmoid of an unconstrained
-    variable, so the iterates never leave the box.
+    variable, so the iterates never leave the box; a start within `EDGE` (2 %) of the range
+    from an edge (a delay of 0, N = n) begins that far inside, where the sigmoid has a slope,
+    and the path's best is compared with the start's own score.
 
     `start` may be a `SearchResult`: its best `top` candidates are refined and the refinement
     with the lowest score is returned; their kernels are sized for the largest of their boxes
@@ -304,12 +320,27 @@ def refine(
         result = optx.RESULTS.max_steps_reached
     code = solver_code(result)
     s_start = {k: _plain(v) for k, v in x0.items()}
-    failed = not math.isfinite(path[0]) or best_f >= path[0] or code not in USABLE
     from ._identify import identify
 
     def at(s):  # the model the objective scored at settings s: identified on these signals
         sig = eqx.tree_at(lambda q: q.delays, signals, device(np.reshape(s["delays"], K)))
         return identify(sig, start.structure, ModulatingFunction(s["N"], s["M"], s["h"]))
+
+    def own(model) -> float:  # the objective's score of `model` itself (the path's first point
+        # is that of the start moved into the box, and of its settings' round trip through
+        # the sigmoid, which can put a delay on a sample's other side: 5e-6 apart)
+        if score == "J":
+            val, status = float(model.J_rel), int(model.status)
+        else:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                obs = observation(model, signals, validate, observer_window=observer_window)
+            val, status = float(obs.E), int(model.status) | int(obs.status)
+        return val if status == 0 and math.isfinite(val) and val > 0 else math.inf
+
+    failed = not math.isfinite(path[0]) or best_f >= path[0] or code not in USABLE
+    if not failed and any(_moved(x0[k], *box[k]) for k in vary):  # no better than the start?
+        failed = best_f >= math.log(own(at(s_start)))
 
     if failed:  # the start, when it is the model its settings give on these signals; else
         # that model, whose score `value` is (a start identified on other data was returned
@@ -329,7 +360,7 @@ def refine(
         warnings.warn(f"refine(): no improvement on the start; returning {what}", stacklevel=2)
     if failed:
         return Refinement(model, start, s_start, s_start, np.exp(np.asarray(path)), code, steps,
-                          math.exp(path[0]), score)
+                          own(model), score)
     s = {k: _plain(v) for k, v in _host_settings(x0, box, best_z).items()}
     return Refinement(at(s), start, s, s_start, np.exp(np.asarray(path)), code, steps,
                       math.exp(best_f), score)

@@ -116,6 +116,27 @@ def test_refine_failure_returns_start(noisy):
         mfmjax.refine(sig, start, vary=("h", "N"), bounds={"N": (0.5, 12)})
 
 
+def test_refine_leaves_a_bound_it_starts_on_and_scores_the_model_it_returns(noisy):
+    """A start on its box's edge (h = 200 in (200, 400) here; a delay of 0 or N = n, the
+    defaults' lower bounds, are the common case): the sigmoid's slope there, the start clipped
+    to 1e-6 of the range, shrank the gradient 1e-6 times, BFGS stopped "successful" at h =
+    200.0, and `value` was the clipped point's score (385.095 against the returned model's
+    385.229). The start now begins `EDGE` (2 %) inside the box: h moves on (past 201 in 10
+    steps), and `value` is the score of the model returned (1e-9: the same E, two programs)."""
+    _, sig, _ = noisy
+    start = mfmjax.identify(sig, ST, ModulatingFunction(3, 4, 200.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (max_steps_reached: the path is slow past h's kinks)
+        r = mfmjax.refine(sig, start, vary=("h",), bounds={"h": (200.0, 400.0)}, max_steps=10)
+    assert r.settings["h"] > 201.0 and r.improved, (r.settings, r.result)
+    assert r.value == pytest.approx(float(mfmjax.performance_index(r.model, sig)), rel=1e-9)
+    assert r.value < float(mfmjax.performance_index(start, sig))
+    # a refinement that fails returns the start with the start's own score
+    r = mfmjax.refine(sig, start, vary=("h",), max_steps=0)
+    assert r.model is start
+    assert r.value == pytest.approx(float(mfmjax.performance_index(start, sig)), rel=1e-9)
+
+
 def test_refine_returns_the_model_its_score_belongs_to(noisy):
     """A start identified on other data (another realisation here) and a refinement that
     fails: `refine` returned that start beside the score of the model its settings give on
