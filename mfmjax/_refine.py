@@ -249,11 +249,18 @@ def refine(
                           "t1)) to keep it apart", stacklevel=2)
         starts = [start.best(i) for i in range(min(top, len(start)))]
         span = max(_kernel_span(_box(signals, s, bounds), vary, s) for s in starts)
-        runs = [refine(signals, s, score=score, vary=vary, bounds=bounds, validate=validate,
-                       observer_window=observer_window, max_steps=max_steps, rtol=rtol,
-                       atol=atol, _span=span)
-                for s in starts]
-        return min(runs, key=lambda r: r.value)  # the score of the model each run returns
+        runs = []
+        for s in starts:  # each run's warnings kept apart: those of the run returned are said
+            with warnings.catch_warnings(record=True) as caught:  # (every run's were, each
+                warnings.simplefilter("always")  # pointing into this file)
+                runs.append((refine(signals, s, score=score, vary=vary, bounds=bounds,
+                                    validate=validate, observer_window=observer_window,
+                                    max_steps=max_steps, rtol=rtol, atol=atol, _span=span),
+                             caught))
+        best, caught = min(runs, key=lambda r: r[0].value)  # the returned model's score
+        for w in caught:
+            warnings.warn(str(w.message), w.category, stacklevel=2)
+        return best
     if not isinstance(start, Model) or start.mf is None:
         raise TypeError("refine(): start must be a Model from identify or a SearchResult")
     _b.start_layout("refine", start, signals)

@@ -317,5 +317,9 @@ def test_refine_of_a_windowed_search_says_it_identifies_on_all_data():
                        identify=(0.0, 30.0), validate=(30.0, 59.95))
     assert sr.identify == ((0.0, 30.0),)
     with pytest.warns(UserWarning, match=r"refine\(\): the search identified on the windows "
-                                         r"\[\(0.0, 30.0\)\], but refine identifies on all"):
+                                         r"\[\(0.0, 30.0\)\], but refine identifies on all") as said:
         mfmjax.refine(sig, sr, top=1, vary=("h",), validate=(30.0, 59.95), max_steps=3)
+    # every warning, the run's own (not converged) too, points at the caller's line (the
+    # runs' pointed into _refine.py)
+    assert any("not converged" in str(w.message) for w in said)
+    assert {w.filename for w in said} == {__file__}, [(w.filename, w.lineno) for w in said]
