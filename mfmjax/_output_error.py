@@ -58,7 +58,7 @@ class OutputErrorFit(eqx.Module):
         if self.delay_std_errors is not None:
             for name, v, e in zip(self.model.input_names, np.asarray(self.model.delays),
                                   self.delay_std_errors):
-                if np.isfinite(e):
+                if not np.isnan(e):  # (inf: a fitted delay at its bound 0)
                     lines.append(f"{'delay ' + name:<12}{v:>16.6e}{e:>14.3e}" + (
                         "  (fitted)" if self.delays_fitted else
                         "  (held; its uncertainty is in the std errors above)"))
@@ -454,6 +454,12 @@ def _finish(residual, meta, solved, delay_uncertainty: bool = False) -> OutputEr
     new = _fitted(model, theta)  # theta: the start's own parameters when not `ok`
     if fitted:  # (the start's delays where not `ok`: z is zero there)
         new = replace_fields(new, delays=device(delays))
+        bound = [k for k in timed if delays[k] == 0.0]
+        if bound:  # its Jacobian column vanishes there: infinite std error, said
+            warnings.warn(f"output_error(): the fitted delays of inputs {bound} reached 0, "
+                          "their bound (no dead time): the data prefer none; their std errors "
+                          "are infinite", stacklevel=3)
+    fitted = fitted and bool(timed.size)  # something was fitted (every delay 0: nothing)
     # fitted with the signals' intersample rules: the model carries them (as SRIVC's), so
     # `observe` and `simulate` reproduce the fit's E
     new = replace_fields(new, intersample=tuple(residual.signals.intersample))
