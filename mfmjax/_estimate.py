@@ -336,7 +336,11 @@ def _which(records: list, total: int, single: bool) -> str:
 RESIDUAL_LAGS = 25  # lags of the residual tests (`residuals`), at most a quarter of the record
 
 
-START_RATIO = 1.2  # SRIVC's from-rest residual variance over the observer-started one
+# SRIVC's from-rest residual variance over the observer-started one above 1 + START_RATIO / T
+# (T samples): the record does not start at rest. At rest it was 1 + (3-9) / T (45 records of
+# 400 and 1500 samples at noise 0.3); a window starting mid-transient, 1.02-4.6 (1.2 flat let
+# a fifth of them through with std errors 1.4x too small)
+START_RATIO = 20.0
 
 
 def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = False) -> list:
@@ -351,11 +355,11 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
     not white, under which the standard errors (which assume white noise) are too small:
     3.4-5.3x with AR(1) noise of pole 0.98. Then, where SRIVC is the returned stage: its
     residual variance (its simulation from rest) over the observer-started one above
-    `START_RATIO`: the record does not start at rest, and SRIVC's standard errors leave out
+    1 + `START_RATIO` / T: the record does not start at rest, and SRIVC's standard errors leave out
     that start-up transient (1.4-2.1x too small on records cut 2 s after an input switch,
-    ratios 1.37-2.2 there against 1.002-1.007 from rest). Nothing for a flagged or unstable
-    model, nor where the returned stage did not converge (its summary already says so; the
-    `rehearsal` compiles the program whatever its stand-in's stages did)."""
+    ratios 1.37-2.2 there against 1.002-1.007 from rest; the threshold is 1 + 20 / T).
+    Nothing for a flagged or unstable model, nor where the returned stage did not converge
+    (its summary already says so; the `rehearsal` compiles the program whatever its stand-in's stages did)."""
     from ._analysis import residual_tests
 
     T = records[0].n_samples
@@ -403,12 +407,13 @@ def residual_notes(records: list, outs: list, n_max: int, rehearsal: bool = Fals
         ratio = (float(fit.sigma2) / float(np.mean(e * e))  # SRIVC fitted on the record
                  if outs[r].method == "srivc" and fit is not None and not exact
                  else 0.0)
-        if ratio > START_RATIO:
-            notes.append(f"SRIVC's simulation from rest leaves {ratio:.2f}x the residual "
+        moving = ratio > 1.0 + START_RATIO / T
+        if moving:
+            notes.append(f"SRIVC's simulation from rest leaves {ratio:.3f}x the residual "
                          "variance of the simulation from the observed initial state: the "
                          "record does not start at rest, and SRIVC's standard errors leave "
                          "out that start-up transient (too small)")
-        out[r] = tuple(notes), bool(bad), ratio > START_RATIO
+        out[r] = tuple(notes), bool(bad), moving
     return out
 
 
