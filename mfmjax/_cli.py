@@ -1205,7 +1205,7 @@ def main(argv=None) -> int:
     _add_data_args(p)
     p.add_argument("--n", default="1:3", help="output orders, range a:b or list (default 1:3)")
     p.add_argument("--m", help="numerator orders, one grid per input separated by ';' "
-                   "(default 0..n-1)")
+                   "(default 0..n-1; with --estimate 0..n, feed-through included)")
     p.add_argument("--N", default="3:5", help="exponent N grid (default 3:5)")
     p.add_argument("--M", default="3:5", help="exponent M grid (default 3:5)")
     p.add_argument("--h", required=True, help="widths h, list a,b,c")

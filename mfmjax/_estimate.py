@@ -223,6 +223,10 @@ def estimate(
         check_search(first, score="E", validate=None, observer_window=None, eta=None,
                      chunk_size=CHUNK_SETTINGS, simulate=True, progress=None, identify=identify,
                      fn="estimate", **grid)
+        if polish is True and identify is not None and len(_b.window_list(identify)) > 1:
+            warnings.warn("estimate(): polish=True is not applied: with several estimation "
+                          "windows the MFM estimate of their summed Grams is returned (SRIVC "
+                          "and output error need one record)", stacklevel=2)
         stages = dict(holdout=holdout, polish=polish, max_iter=max_iter, tol=tol)
         sels = holdout_search(first, estimation=identify, holdout=holdout, folds=folds,
                               records=records, meanwhile=_rehearsal(
@@ -279,7 +283,10 @@ def estimate(
             warnings.warn(f"estimate(){which}: {text}", stacklevel=2)
     for r, (o, (notes, serious, _)) in enumerate(zip(outs, checked)):
         # the grid's choice (the chosen candidate's; `_delays_fitted` may have moved it)
-        texts = delay_edge_notes(o.start.delays, o.model.input_names, edges)
+        fitted = None if o.delay_std_errors is None else [
+            float(d) if np.isfinite(e) else None
+            for d, e in zip(np.asarray(o.model.delays), o.delay_std_errors)]
+        texts = delay_edge_notes(o.start.delays, o.model.input_names, edges, fitted)
         held = [k for k, g in enumerate(grid_mask) if g and (  # gridded, not fitted
             o.delay_std_errors is None or np.isnan(o.delay_std_errors[k]))]
         zero = all(float(np.asarray(o.model.delays)[k]) == 0.0 for k in held)

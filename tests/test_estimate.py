@@ -559,8 +559,10 @@ def test_estimate_recovers_when_srivc_does_not_converge(noisy, monkeypatch):
     winner nor on the fallback candidates: `estimate` returns output error from SRIVC's best
     iterate, converged, and says so in `notes` and `summary()` (never NOT CONVERGED while a
     stage converges). Where SRIVC stalls on the folds too (max_iter=1), it is no SRIVC
-    estimate: the hold-out table says so and the MFM estimate is returned (it was SRIVC's
-    stage, from entries that were their starts' scores, before 2026-11-27)."""
+    estimate: the hold-out table says so and it competes as MFM does (it was SRIVC's stage,
+    from entries that were their starts' scores, before 2026-11-27): output error from the
+    MFM start is returned, as MFM does not predict the held-back data 5 % better (MFM itself
+    was, before 2026-11-28)."""
     import warnings
 
     sig, _ = noisy
@@ -570,7 +572,7 @@ def test_estimate_recovers_when_srivc_does_not_converge(noisy, monkeypatch):
     srivc_keys = [k for k in stalled.holdout if k.startswith("srivc ")]
     assert srivc_keys and all(k.endswith("(not converged on a fold)") for k in srivc_keys)
     assert not any("not converged" in k for k in stalled.holdout if k.startswith("mfm "))
-    assert stalled.method == "mfm" and stalled.srivc is None
+    assert stalled.method == "output error" and stalled.srivc is None and stalled.converged
     _srivc_fails_on_all_data(monkeypatch, sig.n_samples)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a converged result must not warn
@@ -766,12 +768,22 @@ def test_estimate_says_when_its_delay_is_at_the_grid_edge_or_its_residuals_fail(
     rec = simulated_experiment(delayed, dt=DT, n_samples=T, seed=7, noise_std=sd)
     sig = mfmjax.Signals(rec.y, rec.u, dt=DT, intersample="zoh", offset=False)
     with pytest.warns(UserWarning, match=r"the delay of 'u1' \(0.25\) is the largest of its grid "
-                                         r"\(0..0.25\)"):
-        est = mfmjax.estimate(sig, h=2.0, n=(2,), N=3, M=3, m=[[0]], delays=[(0.0, 0.25)])
+                                         r"\(0..0.25\)"):  # SRIVC at the grid's delay
+        est = mfmjax.estimate(sig, h=2.0, n=(2,), N=3, M=3, m=[[0]], delays=[(0.0, 0.25)],
+                              polish=False)
     assert any("is the largest of its grid" in note for note in est.notes)
     assert any("residuals are correlated with the input(s) ['u1']" in note
                for note in est.notes), est.notes
     assert "residuals are correlated" in est.summary()
+    # by default output error fits the delay from there (`_delays_fitted`): beyond the grid,
+    # near the truth (0.976 +- 0.011 here), the residuals independent of the input; the note
+    # says the structure was chosen at the grid's edge
+    with pytest.warns(UserWarning, match=r"the delay of 'u1' was the largest of its grid "
+                                         r"\(0..0.25\), 0.25, and output error moved it beyond"):
+        est = mfmjax.estimate(sig, h=2.0, n=(2,), N=3, M=3, m=[[0]], delays=[(0.0, 0.25)])
+    d = float(np.asarray(est.model.delays)[0])
+    assert abs(d - 1.0) < 4 * est.delay_std_errors[0] < 0.1, (d, est.delay_std_errors)
+    assert not any("residuals are correlated" in note for note in est.notes), est.notes
 
 
 def test_estimate_says_when_its_residuals_are_coloured():
@@ -842,8 +854,11 @@ def test_estimate_not_converging_on_a_fast_growing_plant_says_it_may_be_unstable
     y = np.asarray(clean.y)
     y = y + np.std(y) / 10.0 * np.random.default_rng(0).standard_normal(y.size)
     sig = mfmjax.Signals(y, clean.u, dt=0.1, intersample="zoh", offset=False)
-    with pytest.warns(UserWarning, match=r"did not converge \(unstable_filter\).*the plant itself "
-                                         r"may be.*shorter record"):
+    # (SRIVC stalled on the folds on an unstable filter; output error, tried from there since
+    # 2026-11-28 as MFM did not predict the held-back data 5 % better, does not converge either)
+    with pytest.warns(UserWarning, match=r"did not converge \((unstable_filter|nonlinear_max_"
+                                         r"steps_reached)\).*the plant itself may be.*shorter "
+                                         r"record"):
         est = mfmjax.estimate(sig, h=2.0, n=(2,), N=3, M=3, m=[[0]])
     assert not est.converged and "NOT CONVERGED" in est.summary()
 
@@ -901,6 +916,11 @@ def test_estimate_on_several_windows_says_its_fold_and_selection_as_they_are():
         est = mfmjax.estimate(joined, identify=list(windows), folds=2, **SMALL)
     assert "33% of the last estimation window, fitted on the rest)" in est.selection
     assert "SRIVC" not in est.selection and est.method == "mfm"
+    # polish=True cannot run there either: said (it was ignored without a word)
+    with pytest.warns(UserWarning, match=r"estimate\(\): polish=True is not applied: with "
+                                         r"several estimation windows"):
+        assert mfmjax.estimate(joined, identify=list(windows), polish=True,
+                               **SMALL).method == "mfm"
 
 
 @pytest.mark.skipif(not os.path.isdir(os.path.join(SHARED, "daisy-heating-system")),

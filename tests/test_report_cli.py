@@ -121,15 +121,17 @@ def test_report_missing_files(files, capsys):
 def test_search_estimate_save_keeps_the_covariance_for_report(files, capsys):
     """The CLI-only path: search --estimate --save writes SRIVC's covariance; report bands it.
     estimate's warnings reach stderr as `warning:` lines (the CLI silenced them) and its JSON
-    keeps the chosen orders and every note (it kept neither): the true delay 0.15 is the
-    largest of the grid (0.1, 0.15)."""
+    keeps the chosen orders and every note (it kept neither): the true delay 0.15 lies beyond
+    the grid (0.05, 0.1), and output error, fitting the delay from the grid's largest, moves
+    it there (said, and warned: the structure was chosen at the grid's edge)."""
     folder, _ = files
     saved = folder / "estimated.json"
     assert main(["search", str(folder / "data.csv"), *ARGS, "--n", "2", "--m", "0", "--N", "4",
-                 "--M", "4", "--h", "3", "--delays", "0.1,0.15", "--estimate", "--save",
+                 "--M", "4", "--h", "3", "--delays", "0.05,0.1", "--estimate", "--save",
                  str(saved), "--json"]) == 0
     cap = capsys.readouterr()
-    edge = "the delay of 'valve' (0.15) is the largest of its grid (0.1..0.15)"
+    edge = ("the delay of 'valve' was the largest of its grid (0.05..0.1), 0.1, and output "
+            "error moved it beyond")
     said = [ln for ln in cap.err.splitlines() if ln.startswith("warning: estimate(): ")]
     assert len(said) == 1 and edge in said[0], cap.err
     est = json.loads(cap.out)["estimated"]

@@ -30,20 +30,27 @@ from .._solve import default_eta
 SCORES = ("E", "J", "fit", "aic", "bic")
 
 
-def delay_edge_notes(delays, input_names, grid: list) -> tuple:
+def delay_edge_notes(delays, input_names, grid: list, fitted=None) -> tuple:
     """A note per input whose delay is the largest (or the smallest, above 0) value of a
     delay grid of two or more (`grid`: per input, the values tried): the best delay may lie
     beyond the grid (a 5 s dead time searched on (0, 1) s returned 1 s, a DC gain 11 standard
-    errors off, status ok)."""
+    errors off, status ok). `fitted` (per input, the delay fitted from there, or None): a
+    fitted delay back inside the grid needs no note, one beyond it says so."""
     out = []
     for k, values in enumerate(grid):
         d, lo, hi = float(np.asarray(delays)[k]), min(values), max(values)
         side = "largest" if d == hi else "smallest" if d == lo and lo > 0 else None
-        if hi > lo and side:
+        f = None if fitted is None else fitted[k]
+        if hi > lo and side and (f is None or not lo <= f <= hi):
             name = input_names[k] if input_names else f"u{k + 1}"
             out.append(f"the delay of {name!r} ({d:g}) is the {side} of its grid "
                        f"({lo:g}..{hi:g}): the best delay may lie beyond it, and the model "
-                       "and its standard errors are then wrong; widen delays= to check")
+                       "and its standard errors are then wrong; widen delays= to check"
+                       if f is None else
+                       f"the delay of {name!r} was the {side} of its grid ({lo:g}..{hi:g}), "
+                       f"{d:g}, and output error moved it beyond, to {f:g}: the structure and "
+                       "the MF settings were chosen at the grid's edge; widen delays= to "
+                       "check them")
     return tuple(out)
 
 
