@@ -313,6 +313,18 @@ def test_output_error_says_what_its_result_hides():
     assert "UNSTABLE: the fitted A(s) has a root with Re >= 0" in short.summary()
 
 
+def _two_inputs_one_delayed():
+    """2/(s^2 + 3 s + 2) from u1 delayed 0.47 s, 0.5/(...) from u2, held inputs, 800 samples
+    of 0.05 s: (T, dt, u, noise-free y, the generator that drew u, for the noise)."""
+    true = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0], [0.5]], delays=[0.47, 0.0],
+                                   intersample=["zoh", "zoh"])
+    T, dt = 800, 0.05
+    rng = np.random.default_rng(0)
+    u = np.column_stack([np.repeat(rng.normal(size=T // 20 + 1), 20)[:T],
+                         np.repeat(rng.normal(size=T // 25 + 1), 25)[:T]])
+    return T, dt, u, np.asarray(mfmjax.simulate(true, u, dt=dt)), rng
+
+
 def test_delay_uncertainty_counts_a_fitted_delay_in_the_std_errors():
     """A delay estimated from the same data (refine, a search's delay grid) held as known:
     the std errors came out 0.43-0.52 of the estimates' spread (10 dB, 800 samples, 70
@@ -323,13 +335,7 @@ def test_delay_uncertainty_counts_a_fitted_delay_in_the_std_errors():
     std error. The parameters are the same fit; a zero delay is not counted (NaN)."""
     from mfmjax._output_error import _delay_jacobian, _prepare
 
-    true = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0], [0.5]], delays=[0.47, 0.0],
-                                   intersample=["zoh", "zoh"])
-    T, dt = 800, 0.05
-    rng = np.random.default_rng(0)
-    u = np.column_stack([np.repeat(rng.normal(size=T // 20 + 1), 20)[:T],
-                         np.repeat(rng.normal(size=T // 25 + 1), 25)[:T]])
-    y0 = np.asarray(mfmjax.simulate(true, u, dt=dt))
+    T, dt, u, y0, rng = _two_inputs_one_delayed()
     y = y0 + np.std(y0) * 10 ** (-10 / 20) * rng.standard_normal(T)
     sig = mfmjax.Signals(y, u, dt=dt, intersample=["zoh", "zoh"], delays=[0.47, 0.0],
                          offset=False)
@@ -371,13 +377,7 @@ def test_fit_delays_fits_the_nonzero_delays_with_the_parameters():
     data the std errors equal those of `delay_uncertainty=True` held at the fitted delay (the
     same Gauss-Newton covariance at the same optimum, reached by two paths to rtol 1e-10: 1e-5
     relative), and a list of records is fitted as each alone (1e-12)."""
-    true = Model.from_coefficients([2.0, 3.0, 1.0], [[1.0], [0.5]], delays=[0.47, 0.0],
-                                   intersample=["zoh", "zoh"])
-    T, dt = 800, 0.05
-    rng = np.random.default_rng(0)
-    u = np.column_stack([np.repeat(rng.normal(size=T // 20 + 1), 20)[:T],
-                         np.repeat(rng.normal(size=T // 25 + 1), 25)[:T]])
-    y0 = np.asarray(mfmjax.simulate(true, u, dt=dt))
+    T, dt, u, y0, rng = _two_inputs_one_delayed()
     start = Model.from_coefficients([2.2, 3.3, 1.0], [[1.1], [0.45]], delays=[0.5, 0.0],
                                     intersample=["zoh", "zoh"])
 
