@@ -59,7 +59,8 @@ class Estimate(eqx.Module):
     notes: tuple  # data decisions (offset rule) and fallbacks, in words
     score: float = float("nan")  # the chosen stage's hold-out E x FPE factor (`parsimonious`)
     # each input's delay std error where its delay was picked from a grid and then fitted
-    # (`_delays_fitted`; NaN for an input whose delay was given); None: the delays are held
+    # (`_delays_fitted`; NaN for an input whose delay was held, inf for one fitted down to
+    # its bound 0); None: the delays are held
     delay_std_errors: np.ndarray | None = None
 
     def summary(self) -> str:
@@ -116,7 +117,9 @@ def estimate(
     - Stages: the winner (stabilised: right-half-plane poles mirrored) starts SRIVC (exact
       prefilters, instruments from the noise-free auxiliary model), which removes the
       equation-error bias of MFM under output noise. `polish=None` (default) tries an
-      output-error fit too and keeps it when it lowers the hold-out E by `POLISH_GAIN` (5 %).
+      output-error fit too and keeps it when it lowers SRIVC's hold-out E by `POLISH_GAIN`
+      (5 %), or unless plain MFM's is 5 % lower (where it does not converge on all
+      estimation data, the MFM estimate is returned).
       The best `STRUCTURES` (8) structures of the search, and at most `NESTED` (8) structures
       nested in them (one numerator order lower, level by level), each with its best setting at
       each of its grid delays (at most `DELAYS`, 12), go through SRIVC; the plain MFM
@@ -155,8 +158,9 @@ def estimate(
     - A delay grid (`delays=` with more than one value for an input): the chosen SRIVC or
       output-error estimate is refitted by output error with those delays fitted too
       (`_delays_fitted`, unless `polish=False`), so the delays leave the grid and the standard
-      errors count their uncertainty (`delay_std_errors`); where that fit does not converge,
-      the grid's delays stay and a note says the standard errors hold them known.
+      errors count their uncertainty (`delay_std_errors`); where that fit does not converge
+      or comes out unstable, the grid's delays stay and a note says the standard errors hold
+      them known.
 
     **Returns:** `Estimate`: `model`, `std_errors` and `covariance` (SRIVC's IV covariance,
     or output error's Gauss-Newton covariance; NaN for the plain MFM stage),
@@ -284,7 +288,7 @@ def estimate(
     for r, (o, (notes, serious, _)) in enumerate(zip(outs, checked)):
         # the grid's choice (the chosen candidate's; `_delays_fitted` may have moved it)
         fitted = None if o.delay_std_errors is None else [
-            float(d) if np.isfinite(e) else None
+            float(d) if not np.isnan(e) else None  # (inf: fitted down to its bound 0)
             for d, e in zip(np.asarray(o.model.delays), o.delay_std_errors)]
         texts = delay_edge_notes(o.start.delays, o.model.input_names, edges, fitted)
         held = [k for k, g in enumerate(grid_mask) if g and (  # gridded, not fitted
@@ -439,19 +443,23 @@ def _from_rest_to_output_error(records: list, outs: list, checked: list, n_max: 
                            [outs[r].model for r in redo], n_max=n_max)
     outs = list(outs)
     for r, oe in zip(redo, oes):
+        o, rec = outs[r], records[r]
+        failed = ("did not converge" if oe is None or not oe.converged else
+                  "came out unstable" if unstable_note(oe.model) and not unstable_note(o.model)
+                  else "")
         text = ("output error from SRIVC's estimate " + (
-            "is returned: it fits the initial state, so the start-up transient neither "
-            "biases it nor its standard errors" if oe is not None and oe.converged else
-            "did not converge: SRIVC's fit is returned, its standard errors not trustworthy"))
-        if oe is not None and oe.converged:  # SRIVC's residual notes go with SRIVC's model:
-            rec = records[r]  # the one that says why is kept (`estimate` tests the new one)
-            outs[r] = replace_fields(
-                outs[r], model=oe.model.labelled(rec.output_name, rec.input_names),
-                output_error=oe, names=tuple(oe.names), std_errors=np.asarray(oe.std_errors),
-                covariance=np.asarray(oe.covariance), method="srivc + output error",
-                notes=outs[r].notes + (checked[r][0][-1], text))
-        else:
-            checked[r] = (checked[r][0] + (text,), *checked[r][1:])
+            f"{failed}: SRIVC's fit is returned, its standard errors not trustworthy" if failed
+            else "is returned: it fits the initial state, so the start-up transient neither "
+            "biases it nor its standard errors"))
+        # the not-at-rest note (the last of `checked`'s) goes with the decision, into the
+        # estimate's notes: `estimate` tests a model a later stage returns anew
+        notes = o.notes + (checked[r][0][-1], text)
+        checked[r] = (checked[r][0][:-1], *checked[r][1:])
+        outs[r] = replace_fields(o, notes=notes) if failed else replace_fields(
+            o, model=oe.model.labelled(rec.output_name, rec.input_names), output_error=oe,
+            names=tuple(oe.names), std_errors=np.asarray(oe.std_errors),
+            covariance=np.asarray(oe.covariance), method="srivc + output error",
+            converged=True, notes=notes)
     return outs
 
 
@@ -487,14 +495,18 @@ def _delays_fitted(records: list, outs: list, gridded: tuple, n_max: int) -> lis
                 f"output error with the delays of {names} fitted {failed}: they stay at their "
                 "grid values",))
             continue
+        zero = [repr(rec.input_names[k]) for k in fitted
+                if float(np.asarray(oe.model.delays)[k]) == 0.0]
         outs[r] = replace_fields(
             o, model=oe.model.labelled(rec.output_name, rec.input_names), output_error=oe,
             names=tuple(oe.names), std_errors=np.asarray(oe.std_errors),
             covariance=np.asarray(oe.covariance), delay_std_errors=oe.delay_std_errors,
             method=o.method if o.method.endswith("output error") else o.method
-            + " + output error", notes=o.notes + (
+            + " + output error", converged=True, notes=o.notes + (
                 f"the delays of {names} were fitted by output error from the grid's choice "
-                f"({was}), with the parameters: the standard errors count their uncertainty",))
+                f"({was}), with the parameters: the standard errors count their uncertainty",)
+            + ((f"the delays of {', '.join(zero)} were fitted down to 0, their bound: the data "
+                "prefer no dead time there (infinite std error)",) if zero else ()))
     return outs
 
 
@@ -774,9 +786,10 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
                 # do not start at rest, SRIVC's start-up transient on the fit parts let MFM
                 # win, and only a 5 % gain of output error over MFM replaced it (plain MFM
                 # on 19 of 30 records, bias 0.5-0.6 of its spread, no std errors)
-                mfm = best[r][3] == "mfm" or unsettled(best[r])
-                if polish or rescue and (E_oe <= best[r][0] / (1 - POLISH_GAIN) if mfm
-                                         else E_oe < (1 - POLISH_GAIN) * best[r][0]):
+                vs_mfm = best[r][3] == "mfm" or unsettled(best[r])
+                if polish or rescue and np.isfinite(E_oe) and (
+                        E_oe <= best[r][0] / (1 - POLISH_GAIN) if vs_mfm
+                        else E_oe < (1 - POLISH_GAIN) * best[r][0]):
                     best[r] = (E_oe, fit_oe, best[r][2], stage, oe[r])
     # the chosen stage on all estimation data, from the same candidate re-identified there
     starts = [sels[r].refit.best(best[r][2]) for r in range(R)]
@@ -829,6 +842,14 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
                 del oes[r]
                 fell[r] += ("; output error did not converge either, so SRIVC's best iterate "
                             "is returned")
+        for r in [r for r in oe_rec if methods[r] == "output error"]:
+            if oes[r] is None or not oes[r].converged:  # the MFM estimate it replaced, which
+                methods[r] = "mfm"  # has no iterations to stop short (it was returned
+                del oes[r]  # unconverged, since output error no longer needs a 5 % gain)
+                best[r] = next((x for x in tried[r] if x[3] == "mfm" and x[2] == best[r][2]),
+                               best[r])
+                fell[r] = ("output error, chosen on the held-back data, did not converge on "
+                           "all estimation data: the MFM estimate is returned")
         for r in [r for r in oe_rec if r not in fell and methods[r] == "srivc + output error"]:
             if (oes[r] is None or not oes[r].converged) and fits.get(r) is not None \
                     and fits[r].converged:  # a converged fit over an unconverged polish

@@ -833,7 +833,7 @@ def test_estimate_says_when_its_record_does_not_start_at_rest():
     note = [n for n in est.notes if "does not start at rest" in n]
     assert len(note) == 1, est.notes
     ratio = float(note[0].split("leaves ")[1].split("x")[0])
-    assert ratio > 1 + START_RATIO / T
+    assert ratio > 1 + START_RATIO / T and ratio > 1.2  # (above the flat 1.2 of before too)
     # by default output error from SRIVC's estimate is returned (it fits x0): on 30 such
     # records its standard errors were within 1.00-1.15x of the spread (95 % coverage
     # 0.96-1.00) and the spread itself 1.8-2.6x smaller than SRIVC's
@@ -986,11 +986,12 @@ def test_estimate_chooses_a_delay_on_srivc_not_on_the_mfm_ranking():
         assert len(per_delay) >= 5, e.holdout
         assert e.holdout["chosen: srivc"] == e.holdout[f"srivc n=2 m=[0] delays=[{d}]"]
     # the delay's uncertainty is counted: output error at the fitted delay held (the same
-    # optimum, 1e-6) has smaller std errors, most for a_0, which trades phase with the delay
+    # optimum, 1e-6) has smaller std errors, by 1.7-2.5x on these six records (a_0 most, it
+    # trades phase with the delay): 1.5x, the delay's share, is asserted
     e = ests[0]
     at = mfmjax.output_error(eqx.tree_at(lambda q: q.delays, recs[0], e.model.delays), e.model)
     np.testing.assert_allclose(at.theta, e.output_error.theta, rtol=1e-6)
-    assert np.all(e.std_errors > at.std_errors) and e.std_errors[0] > 1.3 * at.std_errors[0]
+    assert np.all(e.std_errors > 1.5 * at.std_errors), e.std_errors / at.std_errors
     # polish=False keeps SRIVC at the grid's delay, and says its std errors hold it known
     kept = mfmjax.estimate(recs[0], h=1.0, n=(2,), N=3, M=3, m=[[0]], polish=False,
                            delays=[np.arange(0.0, 1.01, 0.1)])
