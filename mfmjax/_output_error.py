@@ -454,7 +454,8 @@ def _finish(residual, meta, solved, delay_uncertainty: bool = False) -> OutputEr
     new = _fitted(model, theta)  # theta: the start's own parameters when not `ok`
     if fitted:  # (the start's delays where not `ok`: z is zero there)
         new = replace_fields(new, delays=device(delays))
-        bound = [k for k in timed if delays[k] == 0.0]
+        bound = [model.input_names[k] if model.input_names else f"u{k + 1}" for k in timed
+                 if delays[k] == 0.0]
         if bound:  # its Jacobian column vanishes there: infinite std error, said
             warnings.warn(f"output_error(): the fitted delays of inputs {bound} reached 0, "
                           "their bound (no dead time): the data prefer none; their std errors "
