@@ -1218,14 +1218,34 @@ def estimate_outputs(records, **kwargs) -> tuple[Estimate, ...]:
                 raise ValueError(f"estimate_outputs(): record {i} has other {what} than "
                                  f"record 0 ({mine!r} against {theirs!r}); build every output's "
                                  "record from one experiment with the same settings")
-    out = []
-    for r in records:  # each warning names its output (the same text came once per output)
-        with warnings.catch_warnings(record=True) as caught:
+    names = [r.output_name for r in records]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:  # the results could not be told apart (each is labelled by its output's name)
+        raise ValueError(f"estimate_outputs(): the output name(s) {twice} are given to more "
+                         "than one record; name each output (Signals(..., output_name=...)) or "
+                         "drop the repeated record")
+    out, caught = [], []
+    for r in records:
+        with warnings.catch_warnings(record=True) as mine:
             warnings.simplefilter("always")
             out.append(estimate(r, **kwargs))
-        for w in caught:
+        caught.append(mine)
+    # a warning every output raised (an argument's: polish with several windows) is said once;
+    # the others name their output (the same text came once per output, unnamed)
+    every = set.intersection(*({str(w.message) for w in c} for c in caught)) \
+        if len(records) > 1 else set()
+    said = set()
+    for r, mine in zip(records, caught):
+        for w in mine:
             text = str(w.message)
+            if text in every:
+                if text in said:
+                    continue
+                said.add(text)
+                who = f"estimate_outputs(), all {len(records)} outputs"
+            else:
+                who = f"estimate_outputs(), output {r.output_name!r}"
             if text.startswith("estimate()"):
-                text = f"estimate_outputs(), output {r.output_name!r}" + text[len("estimate()"):]
+                text = who + text[len("estimate()"):]
             warnings.warn_explicit(text, w.category, w.filename, w.lineno)
     return tuple(out)

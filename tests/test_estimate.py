@@ -646,16 +646,18 @@ def test_estimate_says_when_its_inputs_are_linearly_dependent():
     assert int(est.model.status) & Status.ILL_CONDITIONED
     assert any("linearly dependent" in note for note in est.notes)
     assert "linearly dependent" in est.summary()
-    # two outputs of the experiment: each warning names its output (an audit of 2026-11-28:
-    # the same text came once per output, naming none)
+    # two outputs of the experiment: the inputs' warning holds for every output and is said
+    # once, naming them all (an audit of 2026-11-28: the same text came once per output,
+    # naming none; then once per output, named: a warning about the arguments or the inputs
+    # repeated as often as there are outputs). Warnings of one output name it
+    # (test_selection.py::test_estimate_outputs_one_model_per_output).
     other = mfmjax.Signals(y, np.c_[u, 2 * u], dt=0.1, intersample="zoh", offset=False,
                            output_name="y2")
     with pytest.warns(UserWarning) as caught:
         mfmjax.estimate_outputs([sig, other], h=(5.0,), n=(2,), N=(4,), M=(4,),
                                 m=[(0,), (0,)])
     said = [str(w.message) for w in caught if "linearly dependent" in str(w.message)]
-    assert [text.split(":")[0] for text in said] == ["estimate_outputs(), output 'y'",
-                                                     "estimate_outputs(), output 'y2'"], said
+    assert [text.split(":")[0] for text in said] == ["estimate_outputs(), all 2 outputs"], said
     # delays that separate the inputs (u2 one second later; the same kernel bucket, so the
     # same programs): the returned model is checked under its own delays (it was flagged
     # from the record's, 0 and 0)

@@ -25,6 +25,7 @@ from hypothesis.extra.numpy import arrays
 
 import mfmjax
 from mfmjax import ModulatingFunction, Signals, Structure
+from mfmjax._pytree import replace_fields
 
 FUZZ: dict[str, object] = {}  # public name -> the test that fuzzes it
 
@@ -380,7 +381,8 @@ def test_fuzz_estimate(h, polish, max_iter):
 @example(records="two")
 def test_fuzz_estimate_outputs(records):
     sig = record()
-    arg = {"two": [sig, sig], "mismatch": [sig, Signals(sig.y[:-5], sig.u[:-5], dt=DT)]}.get(
+    renamed = replace_fields(sig, output_name="y2")  # one name twice is refused
+    arg = {"two": [sig, renamed], "mismatch": [sig, Signals(sig.y[:-5], sig.u[:-5], dt=DT)]}.get(
         records, records) if isinstance(records, str) else records
     ok, out = outcome(lambda: mfmjax.estimate_outputs(arg, h=2.0, n=(1, 2), N=3, M=3),
                       ["estimate_outputs()", "estimate()", "search()"])

@@ -322,8 +322,24 @@ def test_estimate_outputs_one_model_per_output():
     y2 = np.asarray(mfmjax.simulate(other, u, dt=DT))
     y2 = y2 + 1e-3 * np.random.default_rng(1).standard_normal(T)
     s2 = Signals(y2, u, dt=DT, intersample=["foh"], output_name="y2")
-    e1, e2 = mfmjax.estimate_outputs([s1, s2], h=(2.0, 3.0), n=(1, 2), N=(3, 4), M=(3, 4))
+    # a third output from a third-order plant, beyond the grid's n <= 2: its residual warning
+    # names it and no other output (warnings every output raises are said once, tested in
+    # test_estimate.py)
+    third = Model.from_coefficients([1.0, 1.2, 1.0, 0.4], [[1.0]], intersample=["foh"])
+    y3 = np.asarray(mfmjax.simulate(third, u, dt=DT))
+    y3 = y3 + 1e-3 * np.random.default_rng(2).standard_normal(T)
+    s3 = Signals(y3, u, dt=DT, intersample=["foh"], output_name="y3")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        e1, e2, _ = mfmjax.estimate_outputs([s1, s2, s3], h=(2.0, 3.0), n=(1, 2), N=(3, 4),
+                                            M=(3, 4))
+    said = [str(w.message) for w in caught if "correlated with the input" in str(w.message)]
+    assert said and all(t.startswith("estimate_outputs(), output 'y3': ") for t in said), said
     assert e1.model.output_name == "y" and e2.model.output_name == "y2"
+    # two records of one name could not be told apart in the results
+    with pytest.raises(ValueError, match=r"estimate_outputs\(\): the output name\(s\) \['y'\] "
+                                         r"are given to more than one record"):
+        mfmjax.estimate_outputs([s1, s1], h=2.0)
     for est, plant in ((e1, TRUE), (e2, other)):
         want = np.asarray(mfmjax.simulate(plant, u, dt=DT))
         got = np.asarray(mfmjax.simulate(est.model, u, dt=DT))
