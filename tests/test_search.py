@@ -215,6 +215,9 @@ def test_exports(noisy, tmp_path):
     doc = json.loads(res.to_json(tmp_path / "r.json"))
     assert doc["candidates"] == len(res) == len(doc["ranked"])
     assert json.loads((tmp_path / "r.json").read_text())["ranked"][0]["rank"] == 1
+    # the labels the rows' delays and b refer to (a saved table named no column)
+    assert (doc["output_name"], doc["input_names"], doc["intersample"], doc["has_offset"]) == (
+        noisy.output_name, list(noisy.input_names), list(noisy.intersample), noisy.offset)
     pd = pytest.importorskip("pandas")
     df = res.to_pandas()
     assert isinstance(df, pd.DataFrame) and len(df) == len(res) and "fit" in df.columns

@@ -128,8 +128,11 @@ class SearchResult(eqx.Module):
     def to_dict(self, top: int | None = None) -> dict:
         rows = [self._row(i) for i in range(len(self) if top is None
                                             else min(_top("to_dict", top), len(self)))]
+        # the labels the rows' delays, b and offset refer to (a saved table named no column)
         return {"score": self.score, "candidates": len(self), "compile_s": self.compile_s,
-                "run_s": self.run_s, "ranked": rows}
+                "run_s": self.run_s, "output_name": self.output_name,
+                "input_names": list(self.input_names), "intersample": list(self.intersample),
+                "has_offset": bool(self.has_offset), "ranked": rows}
 
     def to_json(self, path=None, top: int | None = None) -> str:
         text = json.dumps(self.to_dict(top))
