@@ -85,6 +85,9 @@ def atomic_write(path, data: bytes) -> None:
 
 
 RECORD_KEYS = ("dt", "detrend", "trend", "columns")  # how the identification data were read (`save_model`)
+FIELDS = ("format", "version", "n", "m", "a", "b", "delays", "intersample", "offset", "theta", "J",
+          "J_rel", "cond", "status", "output_name", "input_names", "N", "M", "h", "record",
+          "covariance")  # what `save_model` writes (`Model.to_dict` and its own entries)
 
 
 def save_model(model: Model, path, *, covariance=None, record=None) -> None:
@@ -246,6 +249,11 @@ def load_model(path) -> Model:
 def _check_kinds(doc: dict) -> None:
     """Every field of a model file of the kind `save_model` writes (a hand-edited file took
     strings as coefficients, null delays as zeros, a bool J as 1 and "ab" as two names)."""
+    unknown = sorted(set(doc) - set(FIELDS))
+    if unknown:  # a hand-edited "offest": 1.2 was ignored and the model loaded without offset
+        raise ValueError(f"unknown field(s) {unknown} (a typo?); a model file has the fields "
+                         f"{list(FIELDS)}")
+
     def number(v):
         return isinstance(v, (int, float)) and not isinstance(v, bool)
 

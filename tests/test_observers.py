@@ -444,7 +444,8 @@ def test_simulate_messages_show_the_callers_shape_and_the_argument_order():
 
 def test_load_model_refuses_hand_edits_of_the_wrong_kind_and_keeps_the_pytree(tmp_path):
     """A hand-edited file loaded with strings as coefficients, null delays as zeros, a bool J
-    as 1, version true as 1 and "ab" as two input names; each is now refused by field. A
+    as 1, version true as 1, "ab" as two input names and ignored a misspelt field; each is
+    now refused by field. A
     loaded model (and a search's `best`) has identify's pytree: MF settings as values, no
     static bound (N was an int and h_max set, so `jax.tree.map` could not stack them)."""
     import json
@@ -470,7 +471,9 @@ def test_load_model_refuses_hand_edits_of_the_wrong_kind_and_keeps_the_pytree(tm
             ("output_name", 5, "output_name must be a string"),
             ("theta", None, "theta must be a list of numbers"),
             ("version", True, "format version True, this mfmjax reads version 1"),
-            ("n", "3", "n='3' but the coefficients a and b give n=3")]:
+            ("n", "3", "n='3' but the coefficients a and b give n=3"),
+            # a misspelt field was ignored: "offest" loaded the model without its offset
+            ("offest", 1.2, "unknown field(s) ['offest'] (a typo?)")]:
         path.write_text(json.dumps({**doc, key: value}))
         with pytest.raises(ValueError, match=r"load_model\(\): .*" + re.escape(said)):
             mfmjax.load_model(path)
