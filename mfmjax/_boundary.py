@@ -333,7 +333,16 @@ def delays_note(fn: str, model, signals) -> None:
 
 def _eta(fn: str, eta) -> None:
     if eta is not None and not is_traced(eta):
-        array(fn, "eta", eta, ndim=1, fix="give a finite constraint vector")
+        nonzero_eta(fn, array(fn, "eta", eta, ndim=1, fix="give a finite constraint vector"))
+
+
+def nonzero_eta(fn: str, eta) -> None:
+    """eta^T theta = 1 (eq. 11) has no solution for eta = 0: every candidate came back flagged
+    (nonfinite, a_n_zero, unstable), the cause unsaid."""
+    if eta.size and not np.any(np.asarray(eta)):
+        raise ValueError(f"{fn}(): eta is all zeros, so the constraint eta^T theta = 1 (eq. 11) "
+                         "has no solution; give a nonzero constraint vector (default: ones with "
+                         "the offset's entry 0)")
 
 
 def check_identify(signals, structure, mf, eta=None, delay_max=None,

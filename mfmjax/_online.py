@@ -279,6 +279,7 @@ class OnlineConfig(eqx.Module):
                 f"{max(MIN_VALID, 2 * p)} the search needs; lower h or raise n_start")
         if eta is not None:
             eta = _b.array(fn, "eta", eta, ndim=1, fix="give a finite constraint vector")
+            _b.nonzero_eta(fn, eta)
             if eta.shape != (p,):
                 raise ValueError(
                     f"OnlineConfig(): eta must have one entry per parameter of the largest "
@@ -1250,8 +1251,11 @@ def update(state: OnlineState, t, y, u):
                             (by, bu, np.asarray(end_iv)))
         j = end_iv // S - 1
         predictor = int(state.model["number"])  # the model in force predicts interval j
-        yi, _ = _take(state, j * S, S)  # as measured (improved "spikes" cleans the buffer)
+        yi, ui = _take(state, j * S, S)  # as measured (improved "spikes" cleans the buffer)
+        missing = int(np.sum(np.isnan(yi) & np.all(np.isnan(ui), axis=1)))  # rows never fed
         state, event, record, y_pred = _close_interval(state, j)
+        if missing:  # (or NaN in every column): said in the event, warned below if most are
+            event["missing"] = missing
         ts.append(t0 + np.arange(j * S, end_iv) * c.dt)
         ys.append(yi)
         ps.append(y_pred if y_pred is not None else np.full(S, np.nan))
@@ -1263,6 +1267,15 @@ def update(state: OnlineState, t, y, u):
         if record is not None:
             models.append(record)
         pos = stop
+    sparse = [e for e in events if e.get("missing", 0) * 2 >= S]
+    if sparse:  # samples fed one at a time at 2 dt (a wrong OnlineConfig.dt) left every
+        # interval invalid and nothing was said (the chunk check above needs 3 samples)
+        e = sparse[0]
+        warnings.warn(f"update(): {len(sparse)} interval(s) closed with at least half their "
+                      f"samples missing (interval {e['interval']}: {e['missing']} of {S} never "
+                      "fed, or NaN in every column): they are invalid and nothing is identified "
+                      f"from them; if the data are sampled less often than dt={c.dt:g}, set "
+                      "OnlineConfig.dt to their step", stacklevel=2)
     cat = lambda xs, dt=np.float64: np.concatenate(xs) if xs else np.zeros(0, dt)  # noqa: E731
     return state, OnlineOutputs(
         t=cat(ts), y=cat(ys), y_pred=cat(ps), model_number=cat(ms, np.int64),
@@ -1473,12 +1486,25 @@ class OnlineIdentifier:
         if math.isfinite(self.mse()):
             return (f"predictions are being made ({len(self.models)} models accepted, MSE "
                     f"{self.mse():.4g} so far)")
+        if self.models:  # (it said "no prediction yet: first model", as if that were why)
+            return ("no prediction yet: the first model was accepted; it predicts from the "
+                    "interval after it, which has not closed yet")
         held = [e["action"] for e in self.events if e.get("action", "none") != "none"]
         if held:
             return f"no prediction yet: {held[-1]}"
         if not self.keep_history or self._resumed:  # no events to read: do not guess
             return ("no prediction yet (why is not known: the events are not kept with "
                     "keep_history=False or across a load)")
+        closed = [e for e in self.events if "valid" in e]
+        if closed and not any(e["valid"] for e in closed):  # (it blamed the operating point)
+            gone = sum(e.get("missing", 0) for e in closed)
+            S = self.state.config.samples
+            return (f"no prediction yet: every interval so far ({len(closed)}) was invalid "
+                    "(NaN, inf or missing samples" + (
+                        f": {gone} of {len(closed) * S} samples never fed, or NaN in every "
+                        f"column; if the data are sampled less often than "
+                        f"dt={self.state.config.dt:g}, set OnlineConfig.dt to their step"
+                        if gone else "") + ")")
         return ("no prediction yet: no operating point was detected (the first model is "
                 "identified at the onset of a steady run: an interval where the output and "
                 "every input vary less than steady_rel times their variance so far)")

@@ -105,6 +105,14 @@ def test_identify_eta_nan(data):
     with pytest.raises(ValueError, match=r"identify\(\): eta has a NaN or inf value"):
         mfmjax.identify(sig, Structure(2, 0), ModulatingFunction(3, 3, 4.0),
                         eta=[1.0, NAN, 1.0, 1.0])
+    # all zeros: eta^T theta = 1 has no solution (every search candidate came back flagged,
+    # the cause unsaid)
+    for fn, call in [("identify", lambda: mfmjax.identify(
+            sig, Structure(2, 0), ModulatingFunction(3, 3, 4.0), eta=[0.0] * 4)),
+            ("search", lambda: mfmjax.search(sig, n=(2,), N=(3,), M=(3,), h=(4.0,),
+                                             eta=np.zeros(4)))]:
+        with pytest.raises(ValueError, match=rf"{fn}\(\): eta is all zeros"):
+            call()
 
 
 # -- search, best, refine, output_error, scores ----------------------------------------------

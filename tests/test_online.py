@@ -9,6 +9,7 @@ test_identify), so 1e-3 (the issue's acceptance bound) is met with room to spare
 import json
 import math
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -697,6 +698,45 @@ def test_config_refuses_an_h_too_wide_for_the_first_window_and_says_why_no_predi
     kept = OnlineIdentifier(_config())
     kept.update(t[:3 * S], y[:3 * S], u[:3 * S])
     assert kept.why_no_prediction() == "no prediction yet: waiting: 3 of 8 intervals"
+    # the first model exists (interval 7 closed) but has predicted nothing yet: it said "no
+    # prediction yet: first model", as if the model were the reason (an audit of 2026-11-28)
+    kept.update(t[3 * S:8 * S], y[3 * S:8 * S], u[3 * S:8 * S])
+    assert kept.models and math.isnan(kept.mse())
+    assert kept.why_no_prediction() == ("no prediction yet: the first model was accepted; it "
+                                        "predicts from the interval after it, which has not "
+                                        "closed yet")
+
+
+def test_samples_fed_one_at_a_time_less_often_than_dt_are_said():
+    """Data sampled every 2 s fed one sample at a time to a config with dt = 1: every interval
+    was invalid (half its samples missing), nothing was identified, no warning came (the
+    chunk check needs 3 samples) and `why_no_prediction` blamed the operating point test."""
+    t, y, u, _ = switching_experiment(n_intervals=4, switches=(), models=switching_plant()[:1])
+    ident = OnlineIdentifier(_config())
+    with pytest.warns(UserWarning, match=r"update\(\): 1 interval\(s\) closed with at least half "
+                                         r"their samples missing \(interval 0: 125 of 250 never "
+                                         r"fed, .*set OnlineConfig.dt to their step"):
+        for i in range(0, S + 2, 2):  # samples 0, 2, ..., 250: interval 0 closes
+            ident.update(2.0 * t[i // 2:i // 2 + 1], y[i:i + 1], u[i:i + 1])
+    assert ident.events[0]["missing"] == 125 and not ident.events[0]["valid"]
+    assert ident.why_no_prediction() == (
+        "no prediction yet: every interval so far (1) was invalid (NaN, inf or missing samples: "
+        "125 of 250 samples never fed, or NaN in every column; if the data are sampled less "
+        "often than dt=1, set OnlineConfig.dt to their step)")
+    # every sample fed: no missing count in the events, no warning
+    whole = OnlineIdentifier(_config())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        whole.update(t[:S], y[:S], u[:S])
+    assert "missing" not in whole.events[0] and whole.events[0]["valid"]
+
+
+def test_an_all_zero_eta_is_refused():
+    """eta = 0 makes eta^T theta = 1 (eq. 11) unsolvable: `OnlineConfig` accepted it and every
+    identification was rejected as flagged (nonfinite, a_n_zero, unstable), the cause unsaid."""
+    with pytest.raises(ValueError, match=r"OnlineConfig\(\): eta is all zeros, so the constraint "
+                                         r"eta\^T theta = 1 \(eq. 11\) has no solution"):
+        _config(eta=(0.0,) * 7)
 
 
 def test_plot_online_shows_only_what_falls_on_its_time_axis(tmp_path):
