@@ -298,15 +298,20 @@ def residuals(model: Model, signals: Signals, window=None, *, observer_window=No
 
 
 def model_and_covariance(obj, covariance, fn: str):
-    """(model, covariance or None) from a Model (+ `covariance`) or a fit with `.covariance`
-    (`Estimate`, `OutputErrorFit`, `SrivcFit`), checked against `free_parameters(model)`."""
+    """(model, covariance or None, joint or None) from a Model (+ `covariance`) or a fit with
+    `.covariance` (`Estimate`, `OutputErrorFit`, `SrivcFit`), checked against
+    `free_parameters(model)`; `joint`: the fit's `joint_covariance` (the parameters' and the
+    delays'), where it has a finite one and `covariance` was not given."""
     _b.require_x64(fn)
-    names = None
+    names = joint = None
     if isinstance(obj, Model):
         model = obj
     elif isinstance(getattr(obj, "model", None), Model) and hasattr(obj, "covariance"):
         model = obj.model
         names = tuple(getattr(obj, "names", ()) or ()) or None
+        held = getattr(obj, "joint_covariance", None)
+        if covariance is None and held is not None and np.all(np.isfinite(held)):
+            joint = np.asarray(held, dtype=np.float64)
         if covariance is None:
             covariance = usable_covariance(model, obj.covariance)
             if covariance is None:
@@ -314,7 +319,7 @@ def model_and_covariance(obj, covariance, fn: str):
 
                 warnings.warn(f"{fn}(): the fit carries no usable covariance (empty or not "
                               "finite): no bands", stacklevel=3)
-                return model, None
+                return model, None, None
     else:
         raise TypeError(f"{fn}(): model must be a Model or a fit with a covariance (Estimate, "
                         f"OutputErrorFit, SrivcFit), got {type(obj).__name__}")
@@ -323,7 +328,7 @@ def model_and_covariance(obj, covariance, fn: str):
         raise ValueError(f"{fn}(): the fit's parameters {list(names)} are not the model's free "
                          f"parameters {list(free)}")
     if covariance is None:
-        return model, None
+        return model, None, None
     cov = _b.array(fn, "covariance", covariance, ndim=2,
                    fix="an undetermined parameter (infinite variance) has no band: give a finite "
                        "covariance, or leave it out")
@@ -339,7 +344,7 @@ def model_and_covariance(obj, covariance, fn: str):
         raise ValueError(f"{fn}(): covariance is not positive semidefinite (its correlation "
                          f"matrix has the eigenvalue {worst:.3g}): no distribution has it; "
                          "check how it was computed (a correlation above 1 in magnitude?)")
-    return model, cov
+    return model, cov, joint
 
 
 PSD_TOL = 1e-10  # a correlation matrix's eigenvalue below -this: not a covariance (rounding
@@ -388,22 +393,30 @@ def _growing(fn: str, model, what: str):
     return rate
 
 
-def _placed(cov, live, size: int):
-    """`cov` (of the free parameters) at the positions `live` of `order_parameters`' vector,
-    zero elsewhere (the extra coefficients are known zeros); None stays None."""
+def _placed(cov, joint, live, size: int, K: int):
+    """The covariance of (`order_parameters`' vector (size), the K delays): `joint` (the free
+    parameters' and the delays') or `cov` (the free parameters' alone: delays known, zero
+    rows) at the positions `live`, zero elsewhere (the extra coefficients are known zeros);
+    None stays None."""
     if cov is None:
         return None
-    out = np.zeros((size, size))
-    out[np.ix_(live, live)] = cov
+    at = np.concatenate([live, size + np.arange(K)])
+    out = np.zeros((size + K, size + K))
+    if joint is None:
+        out[np.ix_(live, live)] = cov
+    else:
+        out[np.ix_(at, at)] = joint
     return out
 
 
 def _value_and_std(f, theta, cov):
-    """f(theta) and, with a covariance, the delta method's sqrt(diag(J cov J^T)) (J = jacfwd)."""
+    """f(theta) and, with a covariance, the delta method's sqrt(diag(J cov J^T)) (J = jacfwd;
+    columns of zero variance left out: a delay held where its derivative is not defined)."""
     value = f(theta)
     if cov is None:
         return value, None
     J = jax.jacfwd(f)(theta).reshape(-1, theta.shape[0])
+    J = jnp.where(jnp.diag(cov)[None, :] > 0, J, 0.0)
     var = jnp.einsum("ij,jk,ik->i", J, cov, J)
     return value, jnp.sqrt(jnp.maximum(var, 0.0)).reshape(value.shape)
 
@@ -444,10 +457,14 @@ def _step_base(form):
 @jit
 def _step_program(base, theta, u, cov, dt):
     """Step response y (T,) for inputs u (T+1, K) that step at sample 1 (inputs before sample
-    0 are held at u[0] = 0, so delays see rest), and its delta-method std."""
+    0 are held at u[0] = 0, so delays see rest), and its delta-method std; `theta` ends with
+    the K delays' shifts from the model's (zeros: their derivatives for the band)."""
+    P = theta.shape[0] - base.n_inputs
+
     def f(th):
-        m = with_parameters(base, th)
-        m = eqx.tree_at(lambda q: q.offset, m, jnp.zeros_like(m.offset))
+        m = with_parameters(base, th[:P])
+        m = eqx.tree_at(lambda q: (q.offset, q.delays), m,
+                        (jnp.zeros_like(m.offset), base.delays + th[P:]))
         y, _, status = simulate_status(m, u, jnp.zeros(base.n), dt)
         # an overflowing response is frozen at its last finite state: NaN, so that
         # `step_response` raises (a flat 5e149 came back for a pole at +1 over 400 s)
@@ -463,14 +480,17 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
     e-folding times of the fastest growing mode; 7 with integrators alone; plus the largest
     delay), with a 99 % band $\pm 2.576\sigma$ from the
     delta method ($\sigma^2 = \mathrm{diag}(J \Sigma J^T)$, $J$ the Jacobian of the response in
-    the free parameters by `jax.jacfwd`, $\Sigma$ their covariance; delays count as known).
+    the free parameters by `jax.jacfwd`, $\Sigma$ their covariance; delays count as known,
+    unless the fit carries `joint_covariance` (delays fitted or counted: `output_error(...,
+    fit_delays=True)`, an `estimate` that fitted its grid's delays): then the Jacobian holds
+    the delays' columns and $\Sigma$ is the joint one).
 
     **Arguments:** `model`: a `Model`, or a fit carrying its covariance (`Estimate`,
     `OutputErrorFit`, `SrivcFit`); `covariance`: of `free_parameters(model)` (a_0..a_{n-1},
     b_kj, offset), overrides the fit's. **Returns:** `StepResponse`.
     """
     _b.eager_only("step_response", model, t_final, covariance)
-    model, cov = model_and_covariance(model, covariance, "step_response")
+    model, cov, joint = model_and_covariance(model, covariance, "step_response")
     n_points = _b.integer("step_response", "n_points", n_points, lo=2, hi=100_000)
     p = _poles(model)
     rate = _growing("step_response", model, "its step response grows without bound" + (
@@ -499,7 +519,8 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
     dt = np.float64(t_final / (n_points - 1))  # a value: no program per t_final
     form, theta, live = order_parameters(model, free_parameters(model)[1])
     base, ys, stds = _step_base(form), [], []
-    cov = _placed(cov, live, theta.size)
+    cov = _placed(cov, joint, live, theta.size, model.n_inputs)
+    theta = np.concatenate([theta, np.zeros(model.n_inputs)])  # the delays' shifts
     for k in range(model.n_inputs):
         u = np.zeros((n_points + 1, model.n_inputs))
         u[1:, k] = 1.0
@@ -548,15 +569,17 @@ class FrequencyResponse(eqx.Module):
 @jit
 def _freq_program(base, theta, w, cov, k):
     """(|H_k| in dB, angle of B_k/A in rad) (2, W) at w and its delta-method std (the delay
-    term is exact and known: added outside)."""
+    term -w tau_k is added outside; `theta` ends with the K delays' shifts, zeros, whose
+    derivative -w enters the phase's band)."""
     s = 1j * w
+    P = theta.shape[0] - base.n_inputs
 
     def f(th):
-        m = with_parameters(base, th)
+        m = with_parameters(base, th[:P])
         A = jnp.polyval(m.a[::-1].astype(jnp.complex128), s)
         B = jnp.polyval(jnp.stack(m.b)[k][::-1].astype(jnp.complex128), s)  # k: a value
         H = B / A
-        return jnp.stack([20.0 * jnp.log10(jnp.abs(H)), jnp.angle(H)])
+        return jnp.stack([20.0 * jnp.log10(jnp.abs(H)), jnp.angle(H) - w * th[P + k]])
     return _value_and_std(f, theta, cov)
 
 
@@ -564,12 +587,14 @@ def frequency_response(model, w=None, *, covariance=None, n_points: int = 400):
     r"""Frequency response of each input's transfer function $B_k(s)/A(s)\,e^{-s\tau_k}$ at
     `w` (rad per time unit; default `n_points` log-spaced from 0.01x the smallest to 100x the
     largest nonzero pole or zero magnitude), with 99 % bands on magnitude (dB) and phase (deg)
-    from the delta method (`jax.jacfwd` in the free parameters; delays count as known).
+    from the delta method (`jax.jacfwd` in the free parameters; delays count as known unless
+    the fit carries `joint_covariance`, as `step_response`: the phase band then holds
+    -w tau_k's share).
 
     **Arguments:** as `step_response`. **Returns:** `FrequencyResponse`.
     """
     _b.eager_only("frequency_response", model, w, covariance)
-    model, cov = model_and_covariance(model, covariance, "frequency_response")
+    model, cov, joint = model_and_covariance(model, covariance, "frequency_response")
     _growing("frequency_response", model, "B_k(jw)/A(jw) is defined, but it is no "
              "steady-state response (the model has none)")
     if w is None:
@@ -581,7 +606,8 @@ def frequency_response(model, w=None, *, covariance=None, n_points: int = 400):
         raise ValueError("frequency_response(): w must hold frequencies > 0 (rad per time unit)")
     w = np.asarray(w, dtype=np.float64)
     base, theta, live = order_parameters(model, free_parameters(model)[1])
-    cov = _placed(cov, live, theta.size)
+    cov = _placed(cov, joint, live, theta.size, model.n_inputs)
+    theta = np.concatenate([theta, np.zeros(model.n_inputs)])  # the delays' shifts
     delays = np.asarray(model.delays, dtype=np.float64)
     Hs, mags, phases, mstd, pstd = [], [], [], [], []
     for k in range(model.n_inputs):

@@ -21,7 +21,7 @@ from ._simulate import forced_response
 
 
 def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | None = None):
-    r"""Cramer-Rao standard deviations of the free parameters (and x0) of `model` for white
+    r"""Cramer-Rao standard deviations of the free parameters of `model` (x0 unknown too) for white
     output noise of standard deviation `sigma`: $\sqrt{\mathrm{diag}(\sigma^2 (J^T J)^{-1})}$,
     $J = \partial y_{sim} / \partial(\theta, x_0)$ by `jax.jacfwd` of the exact simulation.
     Arguments in the order of `simulate(model, u, x0, dt=...)`: the experiment `u` (T, K) from
@@ -52,7 +52,9 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
         raise ValueError(f"cramer_rao(): the sensitivities overflow float64 (|dy/dtheta| up "
                          f"to {np.nanmax(np.abs(J)):.3g}): u or x0 is too large for this model; "
                          "scale the experiment (the bounds scale with sigma / |u|)")
-    std = np.sqrt(np.diag(gauss_newton_covariance(J, sigma**2)))[: theta0.size]
+    # J / sigma: the bounds of an experiment scaled by c (u, sigma -> c u, c sigma) do not
+    # change (sigma^2 of 1e-155 underflowed: every bound came back inf, read as undetermined)
+    std = np.sqrt(np.diag(gauss_newton_covariance(J / sigma, 1.0)))[: theta0.size]
     rate = float(np.max(growing_poles(model.a).real, initial=0.0))
     if not np.all(np.isfinite(std)) and rate > 0:
         warnings.warn(f"cramer_rao(): the model is unstable (growth rate {rate:.3g}): its "

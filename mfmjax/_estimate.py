@@ -62,6 +62,9 @@ class Estimate(eqx.Module):
     # (`_delays_fitted`; NaN for an input whose delay was held, inf for one fitted down to
     # its bound 0); None: the delays are held
     delay_std_errors: np.ndarray | None = None
+    # with `delay_std_errors`: the covariance of (names..., every input's delay) (p + K, p + K),
+    # held delays with zero rows (`OutputErrorFit.joint_covariance`; the bands read it)
+    joint_covariance: np.ndarray | None = None
 
     def summary(self) -> str:
         """The model, the standard errors, how it was reached and whether it converged."""
@@ -501,6 +504,7 @@ def _delays_fitted(records: list, outs: list, gridded: tuple, n_max: int) -> lis
             o, model=oe.model.labelled(rec.output_name, rec.input_names), output_error=oe,
             names=tuple(oe.names), std_errors=np.asarray(oe.std_errors),
             covariance=np.asarray(oe.covariance), delay_std_errors=oe.delay_std_errors,
+            joint_covariance=oe.joint_covariance,
             method=o.method if o.method.endswith("output error") else o.method
             + " + output error", converged=True, notes=o.notes + (
                 f"the delays of {names} were fitted by output error from the grid's choice "

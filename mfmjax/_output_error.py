@@ -48,6 +48,10 @@ class OutputErrorFit(eqx.Module):
     # counted); None without it (the delays count as known)
     delay_std_errors: np.ndarray | None = None
     delays_fitted: bool = False  # `fit_delays`: the model's nonzero delays were fitted too
+    # with `delay_uncertainty` or `fit_delays`: the covariance of (names..., every input's
+    # delay), (p + K, p + K), a delay held or of 0 with zero rows; the bands of
+    # `step_response` and `frequency_response` read it
+    joint_covariance: np.ndarray | None = None
 
     def summary(self) -> str:
         """Parameters with standard errors, E before and after, and the solver's verdict."""
@@ -389,7 +393,9 @@ def gauss_newton_covariance(J, sigma2: float) -> np.ndarray:
     if J.shape[0] < J.shape[1]:  # fewer rows than unknowns: zero rows give the thin SVD's Vt
         # the whole null space (without them no parameter came out undetermined)
         J = np.concatenate([J, np.zeros((J.shape[1] - J.shape[0], J.shape[1]))])
-    scale = np.linalg.norm(J, axis=0)
+    peak = np.max(np.abs(J), axis=0, initial=0.0)  # the norm after scaling by it: a column of
+    # 1e-155 had a squared norm of 0 (underflow) and came out "undetermined"
+    scale = peak * np.linalg.norm(J / np.where(peak > 0, peak, 1.0), axis=0)
     dead = ~(scale > 0)
     scale = np.where(dead, 1.0, scale)
     _, s, Vt = np.linalg.svd(J / scale, full_matrices=False)
@@ -447,10 +453,16 @@ def _finish(residual, meta, solved, delay_uncertainty: bool = False) -> OutputEr
     dof = max(length - Jp.shape[1], 1)
     sigma2 = float(np.sum(r**2)) / dof
     cov = gauss_newton_covariance(Jp, sigma2)
-    delay_std = None
+    delay_std = joint = None
     if delay_uncertainty or fitted:
         delay_std = np.full(delays.shape, np.nan)
         delay_std[timed] = np.sqrt(np.diag(cov)[Jp.shape[1] - timed.size :])
+        K = delays.size
+        at = np.concatenate([np.arange(p_theta), Jp.shape[1] - timed.size + np.arange(
+            timed.size)])  # theta's and the timed delays' rows of cov (x0's left out)
+        to = np.concatenate([np.arange(p_theta), p_theta + timed])
+        joint = np.zeros((p_theta + K, p_theta + K))
+        joint[np.ix_(to, to)] = cov[np.ix_(at, at)]
     new = _fitted(model, theta)  # theta: the start's own parameters when not `ok`
     if fitted:  # (the start's delays where not `ok`: z is zero there)
         new = replace_fields(new, delays=device(delays))
@@ -481,7 +493,7 @@ def _finish(residual, meta, solved, delay_uncertainty: bool = False) -> OutputEr
                       "the window and the start, or validate it before use", stacklevel=3)
     return OutputErrorFit(new, original, x0, names, theta, np.sqrt(np.diag(cov))[:p_theta],
                           cov[:p_theta, :p_theta], sigma2, E0, E1, code, int(n_steps),
-                          bool(converged), bool(was_unstable), delay_std, fitted)
+                          bool(converged), bool(was_unstable), delay_std, fitted, joint)
 
 
 def output_error_many(records, models, *, n_max: int | None = None, max_steps: int = 100,

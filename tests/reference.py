@@ -190,6 +190,18 @@ def lsim(a, b, u, dt, modes, x0=None):
     return y
 
 
+def modal_zoh(poles, b, u, dt):
+    """Response of b(s) / prod(s - p) (b in descending powers, distinct poles) to a zoh input
+    from rest, mode by mode (partial fractions: each mode's exact zoh recursion, no matrix
+    exponential): the reference for stiff models, whose canonical forms are badly scaled."""
+    r, p, k = signal.residue(b, np.poly(poles))
+    z, y = np.zeros(len(p), complex), np.zeros(len(u))
+    for j in range(len(u)):
+        y[j] = (r @ z).real + (k[0] * u[j] if len(k) else 0.0)
+        z = np.exp(p * dt) * z + (np.exp(p * dt) - 1.0) / p * u[j]
+    return y
+
+
 def expm(M):
     return linalg.expm(M)
 

@@ -405,6 +405,12 @@ def test_fit_delays_fits_the_nonzero_delays_with_the_parameters():
         np.testing.assert_allclose(np.asarray(fit.model.delays), np.asarray(alone.model.delays),
                                    rtol=1e-12)
         np.testing.assert_allclose(fit.delay_std_errors, alone.delay_std_errors, rtol=1e-12)
+        # the joint covariance (parameters, then each input's delay; the one of 0 held: zero
+        # rows) holds the marginal blocks reported (the bands read it)
+        p, J = len(alone.names), alone.joint_covariance
+        assert J.shape == (p + 2, p + 2) and not np.any(J[p + 1]) and not np.any(J[:, p + 1])
+        np.testing.assert_array_equal(J[:p, :p], alone.covariance)
+        assert J[p, p] == pytest.approx(alone.delay_std_errors[0] ** 2, rel=1e-14)  # (sqrt)
         d = np.asarray(alone.model.delays)
         assert abs(d[0] - 0.47) < 4 * alone.delay_std_errors[0] and d[1] == 0.0
         at = mfmjax.output_error(eqx.tree_at(lambda q: q.delays, sig, jnp.asarray(d)),

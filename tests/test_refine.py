@@ -204,6 +204,12 @@ def test_cramer_rao_against_numpy_finite_differences():
     J = np.stack([(sim(base + e) - sim(base - e)) / 2e-6 for e in np.eye(6) * 1e-6], 1)
     ref = np.sqrt(np.diag(0.05**2 * np.linalg.inv(J.T @ J)))[:4]
     np.testing.assert_allclose(crb, ref, rtol=1e-5)  # FD truncation ~1e-12, lsim ~1e-9
+    # the experiment scaled by c (u, x0 and sigma) has the same bounds: sigma^2 and J's column
+    # norms underflowed at c = 1e-155 and every bound came back inf (an audit of 2026-11-28).
+    # Equal up to the rounding of the scaled data and an SVD of the same matrix: 1e-9
+    for c in (1e-155, 1e100):
+        np.testing.assert_allclose(mfmjax.cramer_rao(model, u * c, x0 * c, dt=dt,
+                                                     sigma=0.05 * c)[1], crb, rtol=1e-9)
     # another experiment length in the record bucket (448 samples) is a value: 390 samples, or
     # `length=390` of the 400, compile nothing and equal the first 390 rows' bound
     ref = np.sqrt(np.diag(0.05**2 * np.linalg.inv(J[:390].T @ J[:390])))[:4]
