@@ -310,8 +310,14 @@ def model_and_covariance(obj, covariance, fn: str):
         model = obj.model
         names = tuple(getattr(obj, "names", ()) or ()) or None
         held = getattr(obj, "joint_covariance", None)
-        if covariance is None and held is not None and np.all(np.isfinite(held)):
-            joint = np.asarray(held, dtype=np.float64)
+        if covariance is None and held is not None:
+            joint = np.array(held, dtype=np.float64)
+            p = joint.shape[0] - model.n_inputs
+            lost = p + np.flatnonzero(~np.all(np.isfinite(joint[p:]), axis=1))
+            joint[lost, :] = joint[:, lost] = 0.0  # a delay fitted down to its bound 0 (inf
+            # std error, warned by the fit) counts as known; the others keep their share
+            if not np.all(np.isfinite(joint)):  # an undetermined parameter: no joint bands
+                joint = None
         if covariance is None:
             covariance = usable_covariance(model, obj.covariance)
             if covariance is None:

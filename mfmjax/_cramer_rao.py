@@ -54,7 +54,13 @@ def cramer_rao(model: Model, u, x0, *, dt: float, sigma: float, length: int | No
                          "scale the experiment (the bounds scale with sigma / |u|)")
     # J / sigma: the bounds of an experiment scaled by c (u, sigma -> c u, c sigma) do not
     # change (sigma^2 of 1e-155 underflowed: every bound came back inf, read as undetermined)
-    std = np.sqrt(np.diag(gauss_newton_covariance(J / sigma, 1.0)))[: theta0.size]
+    with np.errstate(over="ignore"):
+        J = J / sigma
+    if not np.all(np.isfinite(J)):  # (numpy's "SVD did not converge" came from the SVD)
+        raise ValueError(f"cramer_rao(): sigma={sigma:.3g} is too small for these sensitivities "
+                         f"(their ratio overflows float64): the bounds are below float64's "
+                         "range; scale the experiment (the bounds scale with sigma / |u|)")
+    std = np.sqrt(np.diag(gauss_newton_covariance(J, 1.0)))[: theta0.size]
     rate = float(np.max(growing_poles(model.a).real, initial=0.0))
     if not np.all(np.isfinite(std)) and rate > 0:
         warnings.warn(f"cramer_rao(): the model is unstable (growth rate {rate:.3g}): its "

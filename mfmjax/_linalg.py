@@ -150,8 +150,9 @@ def conditioning_eigvals(A, which):
 
 def balance(A):
     """Powers of 2 d (n,) with D^-1 A D (D = diag(d)) roughly balanced: each off-diagonal row
-    and column of about equal 1-norm (Parlett-Reinsch's aim, as LAPACK's gebal, with every
-    row scaled at once by half its exponent, a fixed number of times: no sequential loop).
+    and column of about equal 1-norm (Parlett-Reinsch's aim, as LAPACK's gebal; every scaling
+    moves at once, half the way to its row's balance, a fixed number of times: no sequential
+    loop, no oscillation).
     Exact in floating point; constant in A (no derivative): expm(A) = D expm(D^-1 A D) D^-1.
     The canonical form of a stiff model (poles -1, -1e7, -2e7 at dt = 0.1: 1-norm 4e13) took
     47 squarings where the balanced one (4.7e6) takes 24, and its step response erred by 1e-7
@@ -159,12 +160,12 @@ def balance(A):
     n = A.shape[-1]
     B = jnp.abs(jax.lax.stop_gradient(A)) * (1.0 - jnp.eye(n, dtype=A.dtype))
 
-    def step(_, e):  # e = log2 d
+    def step(_, e):  # e = log2 d, within +-256 (d and d_j / d_i finite whatever A holds)
         scaled = B * jnp.exp2(e[None, :] - e[:, None])
         r, c = jnp.sum(scaled, axis=1), jnp.sum(scaled, axis=0)
         ok = (r > 0) & (c > 0)
-        return e + jnp.where(ok, jnp.round(0.25 * jnp.log2(jnp.where(ok, r, 1.0)
-                                                            / jnp.where(ok, c, 1.0))), 0.0)
+        gap = jnp.log2(jnp.where(ok, r, 1.0)) - jnp.log2(jnp.where(ok, c, 1.0))
+        return jnp.clip(e + jnp.where(ok, jnp.round(0.25 * gap), 0.0), -256.0, 256.0)
 
     return jnp.exp2(jax.lax.fori_loop(0, _BALANCE_SWEEPS, step, jnp.zeros(n, A.dtype)))
 

@@ -1487,8 +1487,16 @@ class OnlineIdentifier:
             return (f"predictions are being made ({len(self.models)} models accepted, MSE "
                     f"{self.mse():.4g} so far)")
         if self.models:  # (it said "no prediction yet: first model", as if that were why)
-            return ("no prediction yet: the first model was accepted; it predicts from the "
-                    "interval after it, which has not closed yet")
+            after = [e for e in self.events if e.get("prediction") and e.get(
+                "t_start", -math.inf) >= self.models[0]["sim_start"]]
+            if not after and (self.keep_history and not self._resumed):
+                return ("no prediction yet: the first model was accepted; it predicts from "
+                        "the interval after it, which has not closed yet")
+            if after:  # closed, nothing predicted: the last one's reason
+                why = after[-1]["prediction"]
+                return ("no prediction yet: the first model is accepted; " + (
+                    "the intervals it predicted have no finite measured output"
+                    if why == "predicted" else why))
         held = [e["action"] for e in self.events if e.get("action", "none") != "none"]
         if held:
             return f"no prediction yet: {held[-1]}"

@@ -354,6 +354,15 @@ def test_bands_of_a_fit_whose_delay_was_fitted_hold_the_delays_uncertainty():
     np.testing.assert_allclose(st.y[0], step(np.r_[THETA, TAU]), rtol=0, atol=1e-12)
     sd = _fd_std(step, np.r_[THETA, TAU], joint)
     np.testing.assert_allclose(st.std[0], sd, rtol=1e-6, atol=1e-9)
+    # a delay fitted down to its bound 0 (infinite std error, NaN covariances; the fit warned)
+    # counts as known: the parameters' bands, not none at all
+    bound = joint.copy()
+    bound[4, :] = bound[:, 4] = np.nan
+    bound[4, 4] = np.inf
+    at_bound = types.SimpleNamespace(model=model, covariance=COV, joint_covariance=bound,
+                                     names=fit.names)
+    np.testing.assert_array_equal(mfmjax.frequency_response(at_bound, w).phase_deg_std,
+                                  known.phase_deg_std)
     # a covariance given by the caller is the parameters' (the delays known), as before
     given = mfmjax.step_response(fit, 5.0, n_points=97, covariance=COV)
     np.testing.assert_array_equal(given.std, mfmjax.step_response(

@@ -705,6 +705,12 @@ def test_config_refuses_an_h_too_wide_for_the_first_window_and_says_why_no_predi
     assert kept.why_no_prediction() == ("no prediction yet: the first model was accepted; it "
                                         "predicts from the interval after it, which has not "
                                         "closed yet")
+    # ... and once that interval closed without a prediction (NaN inputs), its reason
+    kept.update(t[8 * S:9 * S], y[8 * S:9 * S], np.full((S, 2), np.nan))
+    assert math.isnan(kept.mse())
+    assert kept.why_no_prediction() == ("no prediction yet: the first model is accepted; no "
+                                        "prediction: NaN samples in the observer window or "
+                                        "inputs")
 
 
 def test_samples_fed_one_at_a_time_less_often_than_dt_are_said():

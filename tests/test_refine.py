@@ -210,6 +210,10 @@ def test_cramer_rao_against_numpy_finite_differences():
     for c in (1e-155, 1e100):
         np.testing.assert_allclose(mfmjax.cramer_rao(model, u * c, x0 * c, dt=dt,
                                                      sigma=0.05 * c)[1], crb, rtol=1e-9)
+    # a sigma so small that J / sigma overflows: said (numpy's "SVD did not converge" came)
+    with pytest.raises(ValueError, match=r"cramer_rao\(\): sigma=1e-307 is too small for these "
+                                         r"sensitivities"):
+        mfmjax.cramer_rao(model, u * 1e3, x0, dt=dt, sigma=1e-307)
     # another experiment length in the record bucket (448 samples) is a value: 390 samples, or
     # `length=390` of the 400, compile nothing and equal the first 390 rows' bound
     ref = np.sqrt(np.diag(0.05**2 * np.linalg.inv(J[:390].T @ J[:390])))[:4]
