@@ -11,6 +11,7 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
 import time
 import warnings
@@ -1278,7 +1279,14 @@ def main(argv=None) -> int:
     try:
         argv = list(sys.argv[1:] if argv is None else argv)
         no_cache = "--no-compile-cache" in argv  # accepted before or after the command
-        args = parser.parse_args([a for a in argv if a != "--no-compile-cache"])
+        argv = [a for a in argv if a != "--no-compile-cache"]
+        # a value that starts with a minus ("--delays -5,0", "--x0 -1,2"): argparse took it
+        # for an option ("expected one argument"); glued to its option it reaches the checks
+        for i in range(len(argv) - 1, 0, -1):
+            if re.match(r"-[\d.]", argv[i]) and argv[i - 1].startswith("--") \
+                    and "=" not in argv[i - 1]:
+                argv[i - 1:i + 1] = [f"{argv[i - 1]}={argv[i]}"]
+        args = parser.parse_args(argv)
         if args.command is None:
             raise _UserError("mfmjax: give a command: identify, search, validate, report, online, "
                              "dataset, demo (see --help)")

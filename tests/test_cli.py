@@ -95,6 +95,9 @@ def test_identify_table(csv_file, capsys):
         (["--h", "-1"], "h must be > 0"),
         (["--h", "19.95"], "too short"),
         (["--delays", "0,-1"], "delays must be"),
+        # a list starting with a minus was taken for an option by argparse ("expected one
+        # argument"), the range check never reached (an audit of 2026-11-28)
+        (["--delays", "-1,0"], "delays must be"),
         (["--intersample", "foh,cubic"], "unknown intersample mode"),
         (["--delays", "0,x"], "--delays: expected comma-separated numbers"),
     ],
