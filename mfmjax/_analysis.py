@@ -218,18 +218,27 @@ def exact_floor(y, dt: float = 1.0) -> float:
     return float(EXACT_FIT**2 * dt * np.sum((y - np.mean(y)) ** 2))
 
 
+def whiteness(e, lags: int, y=None):
+    """(centred e, its variance, autocorrelation r_ee(0..lags), Box-Pierce Q, white: Q below
+    its 99 % chi-square critical value, None when undefined) of residuals e (N,): the
+    variance is 0 (no test) for constant residuals, or residuals within `exact_floor` of the
+    output `y` (given): a fit to rounding."""
+    N = e.size
+    eb = e - e.mean()
+    Re0 = float(eb @ eb) / N
+    if y is not None and float(e @ e) <= exact_floor(y):
+        Re0 = 0.0  # rounding errors: no test
+    auto = _xcorr(eb, eb, np.arange(lags + 1)) / Re0 if Re0 > 0 else np.full(lags + 1, np.nan)
+    Q = float(N * np.sum(auto[1:] ** 2))
+    return eb, Re0, auto, Q, (bool(Q <= _chi2_99(lags)) if Re0 > 0 else None)
+
+
 def residual_tests(e, u, lags: int, y=None):
     """The statistics of `Residuals` from residuals e (N,) and inputs u (N, K) (NumPy); both
     tests are undefined (None) for constant residuals, or residuals within `exact_floor` of
     the output `y` (given): a fit to rounding."""
     N, K = e.size, u.shape[1]
-    eb = e - e.mean()
-    Re0 = float(eb @ eb) / N
-    if y is not None and float(e @ e) <= exact_floor(y):
-        Re0 = 0.0  # rounding errors: no test
-    tau = np.arange(lags + 1)
-    auto = _xcorr(eb, eb, tau) / Re0 if Re0 > 0 else np.full(lags + 1, np.nan)
-    Q = float(N * np.sum(auto[1:] ** 2))
+    eb, Re0, auto, Q, white = whiteness(e, lags, y)
     xl = np.arange(-lags, lags + 1)
     r_ee_sym = np.concatenate([auto[:0:-1], auto])  # r_ee(k), k = -L..L
     cross = np.full((K, xl.size), np.nan)
@@ -259,13 +268,16 @@ def residual_tests(e, u, lags: int, y=None):
         indep.append(bool(stat[k] <= crit[k]))
     return dict(auto=auto, auto_bound=Z99 / math.sqrt(N), whiteness_stat=Q,
                 whiteness_critical=_chi2_99(lags),
-                white=bool(Q <= _chi2_99(lags)) if Re0 > 0 else None,
+                white=white,
                 cross_lags=xl, cross=cross, cross_bound=bound, independence_stat=stat,
-                independence_critical=crit, independent=tuple(indep), lags=tau)
+                independence_critical=crit, independent=tuple(indep), lags=np.arange(lags + 1))
+
+
+RESIDUAL_LAGS = 25  # lags of the residual tests by default (`residuals`, `estimate`, `srivc`)
 
 
 def residuals(model: Model, signals: Signals, window=None, *, observer_window=None,
-              lags: int = 25) -> Residuals:
+              lags: int = RESIDUAL_LAGS) -> Residuals:
     r"""Residual analysis of `model` on `window` of `signals`, as MATLAB's `resid`.
 
     $e = y - y_{sim}$ with the state at the window start from the initial-state observer

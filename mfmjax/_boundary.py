@@ -331,6 +331,20 @@ def delays_note(fn: str, model, signals) -> None:
                       "signals) if those are the plant's", stacklevel=user_stacklevel())
 
 
+def rules_note(fn: str, model, signals) -> None:
+    """Warn (public entry points only) where the start model's intersample rules differ from
+    the signals', which the fit uses: zoh data declared nowhere in `Signals` (foh by default)
+    with a zoh start fitted a = [4.2, 5.7] for [2, 3], "converged" (an audit of 2026-11-28)."""
+    if tuple(model.intersample) != tuple(signals.intersample):
+        import warnings
+
+        warnings.warn(f"{fn}(): the fit uses the signals' intersample rules "
+                      f"{list(signals.intersample)}, not the start model's "
+                      f"{list(model.intersample)}; declare the data's rule where they were "
+                      "read (Signals(..., intersample=...): 'zoh' for inputs held between "
+                      "samples)", stacklevel=user_stacklevel())
+
+
 def _eta(fn: str, eta) -> None:
     if eta is not None and not is_traced(eta):
         nonzero_eta(fn, array(fn, "eta", eta, ndim=1, fix="give a finite constraint vector"))

@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 from . import _boundary as _b
-from ._analysis import exact_floor
+from ._analysis import RESIDUAL_LAGS, exact_floor
 from ._batch import as_records, map_pairs, overlapped
 from ._boundary import check_search
 from ._model import Model, is_stable
@@ -345,9 +345,6 @@ def _which(records: list, total: int, single: bool) -> str:
     """' (k of R records: [...])' for a batch warning, '' for one record."""
     return "" if single else (f" ({len(records)} of {total} records: {records[:10]}"
                               f"{'...' if len(records) > 10 else ''})")
-
-
-RESIDUAL_LAGS = 25  # lags of the residual tests (`residuals`), at most a quarter of the record
 
 
 # SRIVC's from-rest residual variance over the observer-started one above 1 + START_RATIO / T

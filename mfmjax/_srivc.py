@@ -60,6 +60,7 @@ from ._batch import as_records, map_pairs
 from ._jit import array_jit
 from ._linalg import hurwitz, small_matmul, solve
 from ._model import Model
+from ._pytree import replace_fields
 from ._quadrature import delayed_samples, edge_padded, record_bucket, shift_samples, split_delay
 from ._signals import Signals
 from ._simulate import step_terms
@@ -387,6 +388,13 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
     `padded_model`): new data, starts, dt, `max_iter` and `tol` are values too.
     Works under `jax.jit` and `jax.vmap` (over stacked `Signals` and `Model`s of equal shape).
 
+    In eager mode it warns where the signals' intersample rules differ from the start's (the
+    signals' are used), where the record does not start at rest (the output's first samples
+    away from the fit's response from rest, an input at a level), and where the residuals from
+    rest are not white (Box-Pierce, 1 %): the covariance assumes white noise, and under AR(1)
+    noise of pole 0.95 the standard errors were 2.1-2.8x too small (`estimate` says the same
+    in its notes).
+
     The filters start from rest at the first sample, on the data as given. A record with an
     offset term whose plant is at rest away from zero there (a heater switched on at the
     first sample from an ambient level) leaves a start-up transient: on such a record the
@@ -412,13 +420,14 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
         return _srivc_batch(signals, model, max_iter, tol)
     max_iter, tol = _checked(signals, model, max_iter, tol)
     _b.delays_note("srivc", model, signals)
+    _b.rules_note("srivc", model, signals)
     traced = _b.is_traced(signals.y) or _b.is_traced(model.a) or _b.is_traced(max_iter)
     # padded to (n, largest m_k): each padded coefficient costs a step of the elimination in
     # every IV solve (p = 11 against 7 for n = 3, m = (1, 1): 8.6 against 6.1 ms per fit)
     w = max(model.m, default=0) + 1
     c = padded.padded_model(model, model.n, w - 1)
     fit = _fit(signals, model, padded_fit(signals, c, max_iter=max_iter, tol=tol), (model.n, w))
-    away = [] if traced else _not_at_rest(signals)
+    away, white = ("", None) if traced else _start_and_noise(signals, fit.model)
     at_rest = not away
     if away and int(fit.status) == 0:  # converged, and maybe to a wrong model: an input at a
         # level of 100 (the output at rest) gave a = [5.8, 7.6, 1] for [2, 3, 1], status ok
@@ -426,6 +435,8 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
                       f"signals do not ({away}): the start-up transient biases the fit, "
                       "converged or not; shift the record by its first samples (y - y[0], "
                       "u - u[0], as estimate does; see srivc's docstring)", stacklevel=2)
+    if white is False and at_rest and int(fit.status) == 0:
+        warnings.warn(f"srivc(): {_COLOURED}", stacklevel=2)
     if not traced and int(fit.status) != 0:
         zero = [name for name, uk in zip(signals.input_names, np.asarray(signals.u).T)
                 if not np.any(uk)]
@@ -447,20 +458,52 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
     return fit
 
 
-def _not_at_rest(signals: Signals) -> str:
-    """The signals that start away from rest, as "y starts at 96.9 (range 3.1), ..." ('' when
-    none does): the output's first samples (mean of 10) more than 0.1 of its range from zero
-    (a plant at rest there has a zero output), an input's more than its whole range (an
-    operating level: an input that opens at a value of its own range is an experiment from
-    rest, as a step at the first sample)."""
-    cols = [(signals.output_name, np.asarray(signals.y), 0.1)] + [
-        (name, uk, 1.0) for name, uk in zip(signals.input_names, np.asarray(signals.u).T)]
+_COLOURED = ("the residuals are not white (Box-Pierce on the simulation from rest, 1 % level): "
+             "coloured noise, or dynamics the model misses; the standard errors assume white "
+             "noise and are then too small (see residuals(model, signals); estimate says the "
+             "same in its notes)")
+
+
+def _start_and_noise(signals: Signals, model: Model) -> tuple[str, bool | None]:
+    """(the signals that start away from rest, as "y starts at 96.9 (range 3.1), ..." or '',
+    whether `model`'s residuals from rest are white (Box-Pierce, 1 %; None: undefined)).
+
+    Away from rest: the output's first samples (mean of 10) more than 0.1 of its range from
+    `model`'s response from rest over them (the fit's, its offset term a constant input from
+    rest as in `simulate`), an input's more than its whole range (an operating level: an
+    input that opens at a value of its own range is an experiment from rest, as a step at the
+    first sample; a constant input is no level). The output was compared with zero: a record
+    at rest whose input steps at the first sample rose within those 10 samples and was called
+    not at rest on 22 of 30 PRBS records (an audit of 2026-11-28), with advice that broke the
+    fit. Not white: the standard errors, which assume white noise, are too small (2.1-2.8x
+    under AR(1) noise of pole 0.95 in that audit, status ok, unsaid)."""
+    from ._analysis import RESIDUAL_LAGS, whiteness
+    from ._simulate import simulate
+
+    y, u = np.asarray(signals.y), np.asarray(signals.u).reshape(signals.n_samples, -1)
+    try:  # the model's own response from rest (its delays and offset term, the signals' rules)
+        rest = replace_fields(model, intersample=signals.intersample)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            sim = np.asarray(simulate(rest, u, dt=signals.host_dt))
+    except ValueError:  # it overflows (an unstable model): compared with zero, as before
+        sim = None
+    expected = np.zeros(min(10, y.size)) if sim is None else sim[:10]
+    cols = [(f"{signals.output_name} starts {{:.4g}} away from the model's response from "
+             "rest", y[:10] - expected, np.ptp(y), 0.1)] + [
+        (f"{name} starts at {{:.4g}}", uk[:10], np.ptp(uk), 1.0)
+        for name, uk in zip(signals.input_names, u.T)]
     out = []
-    for name, x, share in cols:
-        x0, span = float(np.mean(x[:10])), float(np.ptp(x))
-        if abs(x0) > share * span:
-            out.append(f"{name} starts at {x0:.4g} (range {span:.3g})")
-    return ", ".join(out)
+    for text, x, span, share in cols:
+        x0 = float(np.mean(x))
+        if span > 0 and abs(x0) > share * span:
+            out.append(text.format(x0) + f" (range {float(span):.3g})")
+    white = None
+    lags = min(RESIDUAL_LAGS, y.size // 4)
+    if sim is not None and lags >= 5:
+        e = y - sim
+        white = whiteness(e, lags, y=y)[-1]
+    return ", ".join(out), white
 
 
 def _checked(signals: Signals, model: Model, max_iter, tol):
@@ -489,8 +532,9 @@ def _checked(signals: Signals, model: Model, max_iter, tol):
         max_iter = _b.integer("srivc", "max_iter", max_iter, lo=1, hi=MAX_ITER_LIMIT,
                               fix="give the largest number of IV solves")
     if not _b.is_traced(tol):
-        tol = _b.number("srivc", "tol", tol, lo=0, lo_open=True,
-                        fix="give a relative parameter change such as 1e-8")
+        tol = _b.number("srivc", "tol", tol, lo=0, lo_open=True, hi=1, hi_open=True,
+                        fix="give a relative parameter change such as 1e-8 (tol=2 stopped at "
+                            "the second iterate, 'converged')")
     return max_iter, tol
 
 
@@ -534,10 +578,19 @@ def _srivc_batch(signals, model, max_iter, tol) -> list:
                             "jax.vmap the single-record call over stacked Signals and Models")
     for r, m in zip(records, models):  # as one record's call (a repeated text shows once)
         _b.delays_note("srivc", m, r)
+        _b.rules_note("srivc", m, r)
     fits = srivc_many(records, models, max_iter=max_iter, tol=tol)
     # the records that start away from rest (one record's call warns of each; the batch said
     # nothing, and a level of 100 at rest fitted a = [5.8, 7.6, 1] for [2, 3, 1], status ok)
-    away = [(i, text) for i, r in enumerate(records) if (text := _not_at_rest(r))]
+    checked = [_start_and_noise(r, m if f is None else f.model)
+               for r, m, f in zip(records, models, fits)]
+    away = [(i, text) for i, (text, _) in enumerate(checked) if text]
+    coloured = [i for i, ((text, white), f) in enumerate(zip(checked, fits))
+                if white is False and not text and f is not None and int(f.status) == 0]
+    if coloured:
+        warnings.warn(f"srivc(): {len(coloured)} of {len(records)} fits (records "
+                      f"{coloured[:10]}{'...' if len(coloured) > 10 else ''}): {_COLOURED}",
+                      stacklevel=3)
     if away:
         warnings.warn(f"srivc(): {len(away)} of {len(records)} records do not start at rest "
                       f"(records {[i for i, _ in away][:10]}{'...' if len(away) > 10 else ''}; "

@@ -261,10 +261,11 @@ def test_list_of_records_equals_one_at_a_time():
     lifted = Signals(np.asarray(sigs[1].y) + 100.0, sigs[1].u, dt=DT, intersample=MODES,
                      offset=True)
     with pytest.warns(UserWarning, match=r"srivc\(\): 1 of 3 records do not start at rest "
-                      r"\(records \[1\]; record 1: y starts at"):
+                      r"\(records \[1\]; record 1: y starts 100 away from the model's "
+                      r"response from rest"):
         mfmjax.srivc([sigs[0], lifted, sigs[2]], starts[:3])
     with pytest.warns(UserWarning, match=r"the filters start from rest at the first sample, "
-                      r"and the signals do not \(y starts at"):
+                      r"and the signals do not \(y starts 100 away"):
         mfmjax.srivc(lifted, starts[1])
     short = Signals(np.asarray(sigs[0].y)[:300], np.asarray(sigs[0].u)[:300], dt=DT,
                     intersample=MODES, offset=True)
@@ -330,6 +331,8 @@ def test_boundary_errors(noisy):
         mfmjax.srivc(sig, start, max_iter=0)
     with pytest.raises(ValueError, match="srivc\\(\\): tol"):
         mfmjax.srivc(sig, start, tol=-1.0)
+    with pytest.raises(ValueError, match="srivc\\(\\): tol.*stopped at the second iterate"):
+        mfmjax.srivc(sig, start, tol=2.0)  # a relative change: it stopped, "converged"
     short = Signals(np.asarray(sig.y)[:5], np.asarray(sig.u)[:5], dt=DT, intersample=MODES,
                     offset=True)
     with pytest.raises(ValueError, match="srivc\\(\\): the record needs more samples"):
@@ -383,6 +386,46 @@ def test_srivc_refuses_signals_without_inputs():
         mfmjax.srivc(sig, start)
 
 
+def test_at_rest_coloured_noise_and_rules_are_said_as_they_are():
+    """From an audit of 2026-11-28. (1) A record at rest whose input steps at the first
+    sample: its output rises within the 10 samples the not-at-rest test averaged, which it
+    compared with zero: warned on 22 of 30 PRBS records, with advice that broke the fit. The
+    test compares them with the fit's own response from rest now: no warning there, while a
+    record with a nonzero initial state is still warned. (2) Coloured noise (AR(1), pole
+    0.95): standard errors 2.1-2.8x too small, status ok, unsaid; warned now (the residuals
+    from rest fail Box-Pierce at 1 %). (3) A zoh start on records whose rule was not declared
+    (foh by default): a = [4.2, 5.7] for [2, 3], converged, unsaid; the rules' mismatch is
+    warned now."""
+    dt, T = 0.2, 1500
+    true = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0, 0.3]], intersample="zoh")
+    start = mfmjax.Model.from_coefficients([2.4, 2.6, 1.0], [[1.1, 0.4]], intersample="zoh")
+    rng = np.random.default_rng(3)
+    u = np.repeat(rng.choice([-1.0, 1.0], T // 50), 50)
+    u[:50] = 1.0  # a step at the first sample
+    clean = np.asarray(mfmjax.simulate(true, u[:, None], dt=dt))
+    white = clean + 0.1 * np.std(clean) * rng.standard_normal(T)
+    assert abs(np.mean(white[:10])) > 0.1 * np.ptp(white)  # what the old test called moving
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # at rest, white noise: nothing to say
+        fit = mfmjax.srivc(Signals(white, u, dt=dt, intersample="zoh", offset=False), start)
+    assert bool(fit.converged)
+    moved = np.asarray(mfmjax.simulate(true, u[:, None], [0.0, 3.0], dt=dt))
+    with pytest.warns(UserWarning, match=r"the signals do not \(y starts .* away from the "
+                                         r"model's response from rest"):
+        mfmjax.srivc(Signals(moved + white - clean, u, dt=dt, intersample="zoh", offset=False),
+                     start)
+    e = np.zeros(T)
+    for k in range(1, T):  # AR(1) noise, pole 0.95, as the audit's
+        e[k] = 0.95 * e[k - 1] + rng.standard_normal()
+    coloured = clean + 0.1 * np.std(clean) * e / np.std(e)
+    with pytest.warns(UserWarning, match=r"srivc\(\): the residuals are not white .* the "
+                                         r"standard errors assume white noise"):
+        mfmjax.srivc(Signals(coloured, u, dt=dt, intersample="zoh", offset=False), start)
+    with pytest.warns(UserWarning, match=r"srivc\(\): the fit uses the signals' intersample "
+                                         r"rules \['foh'\], not the start model's \['zoh'\]"):
+        mfmjax.srivc(Signals(white, u, dt=dt, offset=False), start)
+
+
 def test_warning_says_to_shift_a_record_that_starts_away_from_rest():
     """A fit that did not converge on a record whose output starts far from zero (an operating
     point: the filters start from rest, so the record opens with a start-up transient) names
@@ -390,8 +433,8 @@ def test_warning_says_to_shift_a_record_that_starts_away_from_rest():
     _, sig, start = _record()
     level = Signals(np.asarray(sig.y) + 50.0, sig.u, dt=DT, intersample=MODES,
                     delays=WHOLE, offset=True)
-    with pytest.warns(UserWarning, match=r"y starts at 5\d\.\d+ .*shift the record by its "
-                      r"first samples"):
+    with pytest.warns(UserWarning, match=r"y starts 5\d\.\d+ away from the model's response "
+                      r"from rest .*shift the record by its first samples"):
         mfmjax.srivc(level, start, max_iter=1)
     # converged and away from rest: an input at a level of 100 (the output at rest, an offset
     # term) converges to a = [5.8, 7.6, 1] for [2, 3, 1], status ok, and nothing was said
