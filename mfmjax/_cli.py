@@ -1284,7 +1284,7 @@ def main(argv=None) -> int:
         # for an option ("expected one argument"); glued to its option it reaches the checks
         for i in range(len(argv) - 1, 0, -1):
             if re.match(r"-[\d.]", argv[i]) and argv[i - 1].startswith("--") \
-                    and "=" not in argv[i - 1]:
+                    and "=" not in argv[i - 1] and argv[i - 1] != "--":  # ("--": file names)
                 argv[i - 1:i + 1] = [f"{argv[i - 1]}={argv[i]}"]
         args = parser.parse_args(argv)
         if args.command is None:

@@ -427,7 +427,8 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
     w = max(model.m, default=0) + 1
     c = padded.padded_model(model, model.n, w - 1)
     fit = _fit(signals, model, padded_fit(signals, c, max_iter=max_iter, tol=tol), (model.n, w))
-    away, white = ("", None) if traced else _start_and_noise(signals, fit.model)
+    away, white = ("", None) if traced else _start_and_noise(
+        signals, fit.model if int(fit.status) == 0 else None)
     at_rest = not away
     if away and int(fit.status) == 0:  # converged, and maybe to a wrong model: an input at a
         # level of 100 (the output at rest) gave a = [5.8, 7.6, 1] for [2, 3, 1], status ok
@@ -464,7 +465,7 @@ _COLOURED = ("the residuals are not white (Box-Pierce on the simulation from res
              "same in its notes)")
 
 
-def _start_and_noise(signals: Signals, model: Model) -> tuple[str, bool | None]:
+def _start_and_noise(signals: Signals, model: Model | None) -> tuple[str, bool | None]:
     """(the signals that start away from rest, as "y starts at 96.9 (range 3.1), ..." or '',
     whether `model`'s residuals from rest are white (Box-Pierce, 1 %; None: undefined)).
 
@@ -476,21 +477,27 @@ def _start_and_noise(signals: Signals, model: Model) -> tuple[str, bool | None]:
     at rest whose input steps at the first sample rose within those 10 samples and was called
     not at rest on 22 of 30 PRBS records (an audit of 2026-11-28), with advice that broke the
     fit. Not white: the standard errors, which assume white noise, are too small (2.1-2.8x
-    under AR(1) noise of pole 0.95 in that audit, status ok, unsaid)."""
+    under AR(1) noise of pole 0.95 in that audit, status ok, unsaid). `model` None (a fit that
+    did not converge: its best iterate can be far off, and its response from rest said "not
+    at rest" of 3 of 6 records at rest in a review): the output's first sample against zero,
+    which a step at the first sample does not move; no whiteness."""
     from ._analysis import RESIDUAL_LAGS, whiteness
     from ._simulate import simulate
 
     y, u = np.asarray(signals.y), np.asarray(signals.u).reshape(signals.n_samples, -1)
-    try:  # the model's own response from rest (its delays and offset term, the signals' rules)
-        rest = replace_fields(model, intersample=signals.intersample)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            sim = np.asarray(simulate(rest, u, dt=signals.host_dt))
-    except ValueError:  # it overflows (an unstable model): compared with zero, as before
-        sim = None
-    expected = np.zeros(min(10, y.size)) if sim is None else sim[:10]
-    cols = [(f"{signals.output_name} starts {{:.4g}} away from the model's response from "
-             "rest", y[:10] - expected, np.ptp(y), 0.1)] + [
+    sim = None
+    if model is not None:
+        try:  # the model's own response from rest (its delays and offset, the signals' rules)
+            rest = replace_fields(model, intersample=signals.intersample)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                sim = np.asarray(simulate(rest, u, dt=signals.host_dt))
+        except ValueError:  # it overflows (an unstable model): the first sample, as for None
+            pass
+    start = (f"{signals.output_name} starts {{:.4g}} away from the model's response from rest",
+             y[:10] - sim[:10]) if sim is not None else (
+                 f"{signals.output_name} starts at {{:.4g}}", y[:1])
+    cols = [(*start, np.ptp(y), 0.1)] + [
         (f"{name} starts at {{:.4g}}", uk[:10], np.ptp(uk), 1.0)
         for name, uk in zip(signals.input_names, u.T)]
     out = []
@@ -582,8 +589,8 @@ def _srivc_batch(signals, model, max_iter, tol) -> list:
     fits = srivc_many(records, models, max_iter=max_iter, tol=tol)
     # the records that start away from rest (one record's call warns of each; the batch said
     # nothing, and a level of 100 at rest fitted a = [5.8, 7.6, 1] for [2, 3, 1], status ok)
-    checked = [_start_and_noise(r, m if f is None else f.model)
-               for r, m, f in zip(records, models, fits)]
+    checked = [_start_and_noise(r, f.model if f is not None and int(f.status) == 0 else None)
+               for r, f in zip(records, fits)]
     away = [(i, text) for i, (text, _) in enumerate(checked) if text]
     coloured = [i for i, ((text, white), f) in enumerate(zip(checked, fits))
                 if white is False and not text and f is not None and int(f.status) == 0]

@@ -115,6 +115,17 @@ def test_identify_user_errors(csv_file, capsys, extra, match):
     assert match in err and len(err.splitlines()) == 1
 
 
+def test_a_file_name_after_the_separator_may_start_with_a_minus(csv_file, tmp_path, capsys,
+                                                                monkeypatch):
+    """Values that start with a minus are glued to their option ("--delays -1,0" reached
+    argparse as an option); "--" itself is no option: a file "-1.csv" after it was glued
+    into "--=-1.csv" and the file went missing (a review of 2026-11-28)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "-1.csv").write_text(csv_file.read_text())
+    assert main(["identify", *ARGS, "--json", "--", "-1.csv"]) == 0
+    assert json.loads(capsys.readouterr().out)["n"] == 3
+
+
 def test_cli_process_one_line_exit_2(tmp_path):
     r = subprocess.run([sys.executable, "-m", "mfmjax._cli", "identify", str(tmp_path / "x.csv"),
                         "--output", "y", "--n", "2", "--N", "3", "--M", "3", "--h", "1",
