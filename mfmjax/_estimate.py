@@ -1180,7 +1180,10 @@ def unstable_note(model) -> tuple:
         return ()
     return ("the model has a pole with Re >= 0 (unstable): an unstable plant, or a record that "
             "drifts (a trend, integrating behaviour); check `detrend`, a lower n or a longer "
-            "record before predicting far ahead",)
+            "record before predicting far ahead" + ("" if model.has_offset else
+                                                     "; signals at a level of their own (an "
+                                                     "output far from zero at zero input) "
+                                                     "need the offset term (offset=True)"),)
 
 
 def estimate_outputs(records, **kwargs) -> tuple[Estimate, ...]:

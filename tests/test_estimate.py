@@ -75,6 +75,12 @@ def test_estimate_says_when_its_model_is_unstable():
     assert "Re >= 0 (unstable)" in est.summary()
     assert unstable_note(Model.from_coefficients([0.0, 1.0, 1.0], [[1.0]]))  # integrator
     assert unstable_note(TRUE) == ()
+    # without an offset term, levels are a cause to name (raw data at 1160 degC and 1e5 Pa
+    # with offset=False came back unstable with advice about trends alone: an audit of
+    # 2026-11-28)
+    assert "offset=True" in unstable_note(Model.from_coefficients([-0.1, 1.0], [[1.0]]))[0]
+    assert "offset=True" not in unstable_note(Model.from_coefficients([-0.1, 1.0], [[1.0]],
+                                                                      offset=0.5))[0]
 
 
 def test_estimate_on_noise_free_data_keeps_the_true_structure_and_skips_residual_tests():
