@@ -447,7 +447,9 @@ def _record_note(path: str, args, sig) -> None:
     if isinstance(dt, (int, float)) and dt > 0 and max(dt / sig.host_dt, sig.host_dt / dt) >= 10:
         print(f"note: the model was identified on data sampled at dt={dt:g}; these data have "
               f"dt={sig.host_dt:g}: if their time columns are in different units (s and min), "
-              "convert one: the model's coefficients and delays are in its data's time unit",
+              "convert one: the model's coefficients and delays are in its data's time unit; "
+              f"if --time names a sample counter, read the file with --dt {dt:g} instead (the "
+              "fit below compares the model on a time axis it was not made for)",
               file=sys.stderr)
 
 

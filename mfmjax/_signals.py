@@ -565,7 +565,9 @@ class Signals(eqx.Module):
             [("time", time)] if time is not None else []
         ):
             if name not in columns:
-                headless = bool(available) and all(_is_number(c) for c in available)
+                named = [c for c in available if str(c).strip()]  # (a trailing separator
+                # gives an empty last name: the DaISy exchanger file's first line)
+                headless = bool(named) and all(_is_number(c) for c in named)
                 raise ValueError(
                     f"{source}: unknown column {name!r} for {role}; available: {available}"
                     + ("; the first line holds numbers, so the file has no header: give the "

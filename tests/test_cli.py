@@ -263,8 +263,11 @@ def test_validate_and_report_say_when_the_columns_differ_from_the_models(csv_fil
                                               f"{r.split(',', 1)[1]}" for r in rows[1:]]))
     assert main(["report", str(model_path), str(scaled), "--output", "temp", "--inputs", "u1,u2",
                  "--time", "t", "-o", str(tmp_path / "rep2")]) == 0
-    assert ("note: the model was identified on data sampled at dt=0.01; these data have dt=1"
-            in capsys.readouterr().err)
+    err = capsys.readouterr().err
+    assert "note: the model was identified on data sampled at dt=0.01; these data have dt=1" in err
+    # a sample counter read as time (an audit of 2026-11-28: --time k on 1, 2, 3, ...): the
+    # fix the note names
+    assert "if --time names a sample counter, read the file with --dt 0.01 instead" in err
     detrended = tmp_path / "detrended.json"
     assert main(["identify", str(csv_file), *ARGS, "--detrend", "linear", "--save",
                  str(detrended)]) == 0

@@ -334,3 +334,10 @@ def test_a_headless_file_starting_at_rest_gets_the_names_hint(tmp_path):
         Signals.from_csv(path, output="y", inputs=["u"], time="t")
     s = Signals.from_csv(path, output="y", inputs=["u"], time="t", names=["t", "y", "u"])
     assert s.n_samples == 3
+    # a trailing separator (an empty last name, as the DaISy exchanger file's first line)
+    # hid the hint: "unknown column 'theta'; available: ['1.0', '0.3', '98.6', '']"
+    path = _csv(tmp_path, "trail.csv", "1.0,0.3,98.6,\n2.0,0.3,98.7,\n3.0,0.4,98.9,\n")
+    with pytest.raises(ValueError, match=r"unknown column 'theta' for output; available: .*; "
+                                         r"the first line holds numbers, so the file has no "
+                                         r"header"):
+        Signals.from_csv(path, output="theta", inputs=["q"], time="t")
