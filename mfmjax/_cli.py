@@ -1060,8 +1060,12 @@ def _cmd_search(args):
             print(f"E and fit % on [{w[0]:.15g}, {w[1]:.15g}], the state from the observer over the "
                   f"first {kwargs['observer_window']:g}")
         print(result.table(args.top))
-        if report and "summary" in report:
-            print("\n" + report["summary"])
+        if report and "summary" in report:  # (rank 1 read as the model returned, which a
+            # stage after MFM or another structure's hold-out score can replace)
+            print(f"\nreturned: {report['method']} n={report['n']} m={report['m']} (the "
+                  "table ranks the MFM candidates; the stages after MFM were compared on "
+                  "held-back data, below)")
+            print(report["summary"])
         elif report:
             _print_report(report)
         _print_validation(validation)

@@ -85,6 +85,9 @@ class Estimate(eqx.Module):
             lines.append("the MFM winner was unstable: its right-half-plane poles were mirrored")
         flags = int(self.model.status) & FLAGGED
         lines.append(f"NOT USABLE: the model is flagged ({describe(flags)})" if flags else
+                     # (it read "converged" beside NaN standard errors, after SRIVC had failed)
+                     "plain MFM estimate: a closed form (nothing to converge), without "
+                     "standard errors" if self.method == "mfm" and self.converged else
                      "converged" if self.converged else
                      "NOT CONVERGED: the estimate is the best iterate; its standard errors are "
                      "not trustworthy" + (f" (SRIVC: {self.srivc.describe()})"

@@ -149,6 +149,10 @@ def test_cli_search_estimate(noisy, tmp_path, capsys):
     assert main(args) == 0
     text = capsys.readouterr().out
     assert "method: MFM search -> srivc" in text and "std error" in text
+    # the model returned is named after the table (rank 1 read as it; a practitioner's walk
+    # of 2026-11-28 found the returned SRIVC structure absent from the table)
+    assert re.search(r"\nreturned: srivc n=\d m=\[\d\] \(the table ranks the MFM "
+                     r"candidates", text)
     # the header times the whole estimate (it printed its last search's compile and run time)
     assert re.search(r"candidates, ranked by E on held-back data \(estimate \d+\.\d s: ", text)
     assert main(args + ["--json"]) == 0
@@ -819,6 +823,10 @@ def test_estimate_says_when_its_residuals_are_coloured():
     # error is returned)
     assert est.method == "mfm" and np.all(np.isnan(est.std_errors))
     assert "standard errors" not in note[0]
+    # its summary said "converged" beside the NaN standard errors (a practitioner's walk of
+    # 2026-11-28, after SRIVC had failed on a fold): what it is, instead
+    assert est.summary().endswith("plain MFM estimate: a closed form (nothing to converge), "
+                                  "without standard errors")
     assert not any("residuals" in str(w.message) for w in caught)  # a note, not a warning
 
 
