@@ -1016,6 +1016,17 @@ def _cmd_search(args):
         report = _refine_report(sig_best, best, bool(grid_delays))
     cov = report.pop("covariance", None) if report else None  # saved for report's bands
     validation = _validation_report(args, sig, report["model"] if report else result.best())
+    if args.estimate and validation and validation.get("fit") is not None:
+        held = [v for k, v in est.holdout.items() if k.startswith("chosen: ")]
+        fit = validation["fit"]
+        if held and math.isfinite(held[0]) and 100.0 - fit > 2.0 * (100.0 - held[0]):
+            # (the DaISy dryer: hold-out fit 56.3 %, validation 6.05 %, nothing said)
+            validation["note"] = (
+                f"the validation fit ({fit:.1f} %) leaves more than twice the relative error "
+                f"of the fit on the held-back estimation data ({held[0]:.1f} %): the data "
+                "after the estimation window differ from it (another operating point, a "
+                "disturbance, a drift); the model is valid for the estimation data's regime")
+            print(f"note: {validation['note']}", file=sys.stderr)
     if args.save:  # after everything that can fail: a failed command writes no file
         from ._analysis import usable_covariance
         from ._persist import save_model

@@ -191,6 +191,24 @@ def test_cli_search_estimate(noisy, tmp_path, capsys):
     assert main(args + ["--holdout", "0.7"]) == 2
     assert "holdout must be a share between 0.05 and 0.5 of the estimation data (got 0.7)" \
         in capsys.readouterr().err
+    # a validation window from another regime (the output's gain tripled after the estimation
+    # window) leaves more than twice the relative error of the held-back data's fit: said
+    # (the DaISy dryer: hold-out fit 56.3 %, validation 6.05 %, nothing said; a practitioner's
+    # walk of 2026-11-28); the same record unchanged says nothing (its two fits are close)
+    y, u = np.asarray(sig.y), np.asarray(sig.u)[:, 0]
+    half = T // 2 * DT
+    for scale, said in ((1.0, False), (3.0, True)):
+        moved = np.where(np.arange(T) < T // 2, y, scale * y)
+        np.savetxt(path, np.column_stack([moved, u]), delimiter=",", header="y,u", comments="")
+        windows = ["--identify-window", f"0,{half - DT:.15g}", "--validate-window",
+                   f"{half:.15g},{(T - 1) * DT:.15g}"]
+        one = list(args)
+        one[one.index("--n") + 1] = "2"  # one order: the grid's programs, a shorter record
+        assert main(one + [*windows, "--json"]) == 0
+        io = capsys.readouterr()
+        assert ("leaves more than twice the relative error of the fit on the held-back "
+                "estimation data" in io.err) is said, io.err
+        assert ("note" in json.loads(io.out)["validation"]) is said
 
 
 def _realisations(snr_db, seeds, true=TRUE, dt=DT):
