@@ -314,30 +314,24 @@ def window_list(identify) -> list:
     return [identify] if np.isscalar(identify[0]) else list(identify)
 
 
-def delays_note(fn: str, model, signals) -> None:
-    """Warn (public entry points only) where the start's delays, which the fit uses, differ
-    from delays the signals were given (nonzero): a start built with delays 0 fitted a wrong
-    model silently (a = [0.77, 1.27] for [2, 3] with the record's 0.5 s dead time). Signals at
-    zero delays and a start with delays from a search's grid is the usual path: not said."""
-    if is_traced(model.delays) or is_traced(signals.delays):
-        return
-    d_model, d_sig = np.asarray(model.delays), np.asarray(signals.delays)
-    if np.any(d_sig != 0) and not np.array_equal(d_model, d_sig):
-        import warnings
+def start_notes(fn: str, model, signals) -> None:
+    """Warn (public entry points only) where the start model says otherwise than the signals
+    about what the fit takes from them. Its delays are used: where they differ from delays the
+    signals were given (nonzero), a start built with delays 0 fitted a wrong model silently
+    (a = [0.77, 1.27] for [2, 3] with the record's 0.5 s dead time); signals at zero delays
+    and a start with delays from a search's grid is the usual path: not said. The signals'
+    intersample rules are used: zoh data declared nowhere in `Signals` (foh by default) with a
+    zoh start fitted a = [4.2, 5.7] for [2, 3], "converged" (an audit of 2026-11-28)."""
+    import warnings
 
-        warnings.warn(f"{fn}(): the start model's delays {d_model.tolist()} are used, not the "
-                      f"signals' own {d_sig.tolist()}; give the start the record's delays "
-                      "(Model.from_coefficients(..., delays=...), or identify it on these "
-                      "signals) if those are the plant's", stacklevel=user_stacklevel())
-
-
-def rules_note(fn: str, model, signals) -> None:
-    """Warn (public entry points only) where the start model's intersample rules differ from
-    the signals', which the fit uses: zoh data declared nowhere in `Signals` (foh by default)
-    with a zoh start fitted a = [4.2, 5.7] for [2, 3], "converged" (an audit of 2026-11-28)."""
+    if not (is_traced(model.delays) or is_traced(signals.delays)):
+        d_model, d_sig = np.asarray(model.delays), np.asarray(signals.delays)
+        if np.any(d_sig != 0) and not np.array_equal(d_model, d_sig):
+            warnings.warn(f"{fn}(): the start model's delays {d_model.tolist()} are used, not "
+                          f"the signals' own {d_sig.tolist()}; give the start the record's "
+                          "delays (Model.from_coefficients(..., delays=...), or identify it on "
+                          "these signals) if those are the plant's", stacklevel=user_stacklevel())
     if tuple(model.intersample) != tuple(signals.intersample):
-        import warnings
-
         warnings.warn(f"{fn}(): the fit uses the signals' intersample rules "
                       f"{list(signals.intersample)}, not the start model's "
                       f"{list(model.intersample)}; declare the data's rule where they were "

@@ -248,8 +248,7 @@ def output_error(
         return _output_error_batch(signals, model, window, max_steps, rtol, atol, fit_delays)
     check_output_error(signals, window_=window, max_steps=max_steps, rtol=rtol, atol=atol)
     _eager_only(signals, model)
-    _b.delays_note("output_error", model, signals)
-    _b.rules_note("output_error", model, signals)
+    _b.start_notes("output_error", model, signals)
     residual, meta = _prepare(signals, model, window, rehearse=(max_steps, rtol, atol),
                               fit_delays=fit_delays)
     return _finish(residual, meta, _lm(residual, *_lm_arguments(residual.size, max_steps, rtol,
@@ -284,8 +283,7 @@ def _output_error_batch(signals, model, window, max_steps, rtol, atol, fit_delay
             raise ValueError(f"output_error(): a start model has {m.n_inputs} inputs but the "
                              f"records have {r.n_inputs}; start from models of these signals")
     for r, m in zip(records, models):  # as one record's call (a repeated text shows once)
-        _b.delays_note("output_error", m, r)
-        _b.rules_note("output_error", m, r)
+        _b.start_notes("output_error", m, r)
     with warnings.catch_warnings():  # one warning for the batch, below
         warnings.simplefilter("ignore")
         fits = output_error_many(records, models, max_steps=max_steps, rtol=rtol, atol=atol,

@@ -264,8 +264,7 @@ def refine(
     if not isinstance(start, Model) or start.mf is None:
         raise TypeError("refine(): start must be a Model from identify or a SearchResult")
     _b.start_layout("refine", start, signals)
-    _b.delays_note("refine", start, signals)
-    _b.rules_note("refine", start, signals)
+    _b.start_notes("refine", start, signals)
     if score not in ("E", "J"):
         raise ValueError(f"refine(): score must be 'E' or 'J' (got {score!r})")
     bad = sorted(set(vary) - set(SETTINGS))

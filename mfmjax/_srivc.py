@@ -419,8 +419,7 @@ def srivc(signals, model, *, max_iter: int = 30, tol: float = 1e-8):
     if not isinstance(signals, Signals):
         return _srivc_batch(signals, model, max_iter, tol)
     max_iter, tol = _checked(signals, model, max_iter, tol)
-    _b.delays_note("srivc", model, signals)
-    _b.rules_note("srivc", model, signals)
+    _b.start_notes("srivc", model, signals)
     traced = _b.is_traced(signals.y) or _b.is_traced(model.a) or _b.is_traced(max_iter)
     # padded to (n, largest m_k): each padded coefficient costs a step of the elimination in
     # every IV solve (p = 11 against 7 for n = 3, m = (1, 1): 8.6 against 6.1 ms per fit)
@@ -584,8 +583,7 @@ def _srivc_batch(signals, model, max_iter, tol) -> list:
             raise TypeError("srivc(): a list of records is eager only; under jax.jit, "
                             "jax.vmap the single-record call over stacked Signals and Models")
     for r, m in zip(records, models):  # as one record's call (a repeated text shows once)
-        _b.delays_note("srivc", m, r)
-        _b.rules_note("srivc", m, r)
+        _b.start_notes("srivc", m, r)
     fits = srivc_many(records, models, max_iter=max_iter, tol=tol)
     # the records that start away from rest (one record's call warns of each; the batch said
     # nothing, and a level of 100 at rest fitted a = [5.8, 7.6, 1] for [2, 3, 1], status ok)
