@@ -803,6 +803,7 @@ def _cmd_online(args):
         from ._plotting import plot_online
 
         plot_online(s, ident.models, args.plot, ylabel=args.output,
+                    xlabel=args.time or "time (units of --dt)",  # the CSV column names the unit
                     title=f"on-line prediction, MSE {mse_run:.4g}"
                     + (" (this call; whole run in the text output)" if resumed else ""))
         res["plot"] = args.plot

@@ -269,14 +269,14 @@ def demo(out: str = "mfmjax-demo", horizon: float | None = None, mode: str = "im
         fig_pred = os.path.join(out, f"experiment{ex}_prediction.png")
         span = (float(data["t"][0]), float(end if end is not None else data["t"][-1]))
         plot_inputs(data["t"], data["u"], ["prev. zone [degC]", "pressure [mbar]"], fig_in,
-                    extra=pull, extra_name="pull [t/24h]", xlim=span,
+                    extra=pull, extra_name="pull [t/24h]", xlim=span, xlabel="time [s]",
                     title=f"Experiment {ex}: system inputs and glass pull rate (not measured) "
                           f"(cf. Fig. {2 * ex})")
         mse_txt = f"MSE {mse:.3f} degC$^2$" if math.isfinite(mse) else "no prediction yet"
         plot_online(ident.series(), ident.models, fig_pred, ylabel="zone temperature [degC]",
                     title=f"Experiment {ex}, {mode} mode: on-line prediction, {mse_txt} "
                           f"(paper {PAPER_MSE[ex]}; cf. Fig. {2 * ex + 1})",
-                    start=span[0], end=span[1])
+                    start=span[0], end=span[1], xlabel="time [s]")
         upd = np.asarray(r["update_s"]) * 1e3
         results["experiments"].append({
             "experiment": ex, "mse": mse if math.isfinite(mse) else None, "models": ident.models,

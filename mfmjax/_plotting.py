@@ -31,7 +31,8 @@ def broken_at_switches(y_pred, model_number):
 
 
 def plot_online(series: dict, models: list[dict], path, *, title: str = "", ylabel: str = "y",
-                end: float | None = None, start: float | None = None) -> None:
+                end: float | None = None, start: float | None = None,
+                xlabel: str = "time") -> None:
     """Measured and predicted output; the intervals in which each model predicted on
     alternating blue/yellow bands labelled with the model number (green: before the first
     model); operating points as dotted lines labelled p1, p2, ... (the paper's Fig. 3 and 5).
@@ -73,7 +74,7 @@ def plot_online(series: dict, models: list[dict], path, *, title: str = "", ylab
         ax.plot(tp, yp, lw=1.1, color="#d2501e", label="predicted")
     else:
         ax.plot(t, y_pred, lw=1.1, color="#d2501e", label="predicted")
-    ax.set_xlabel("time [s]")
+    ax.set_xlabel(xlabel)  # the data's time unit is the caller's to name
     ax.set_ylabel(ylabel)
     if title:
         ax.set_title(title, fontsize=10)
@@ -85,7 +86,7 @@ def plot_online(series: dict, models: list[dict], path, *, title: str = "", ylab
 
 
 def plot_inputs(t, u, names, path, *, extra=None, extra_name: str = "", title: str = "",
-                xlim=None) -> None:
+                xlim=None, xlabel: str = "time") -> None:
     """The inputs (and an unmeasured disturbance such as the pull rate) stacked (Fig. 2 and 4),
     on the time axis `xlim` (default: the data's) with the prediction figure's margins."""
     plt = _pyplot()
@@ -98,7 +99,7 @@ def plot_inputs(t, u, names, path, *, extra=None, extra_name: str = "", title: s
     if extra is not None:
         axes[-1].plot(t, extra, lw=1.0, color="#7a3b8f")
         axes[-1].set_ylabel(extra_name)
-    axes[-1].set_xlabel("time [s]")
+    axes[-1].set_xlabel(xlabel)
     axes[-1].set_xlim(*(xlim if xlim is not None else (float(t[0]), float(t[-1]))))
     if title:
         axes[0].set_title(title, fontsize=10)

@@ -301,7 +301,8 @@ def switching_csv(tmp_path_factory, switching):
     return p
 
 
-def test_cli_online_table_plot_json(switching, switching_csv, tmp_path, capsys):
+def test_cli_online_table_plot_json(switching, switching_csv, tmp_path, capsys, monkeypatch):
+    from matplotlib.figure import Figure
     from matplotlib.image import imread
 
     from mfmjax._cli import main
@@ -313,7 +314,17 @@ def test_cli_online_table_plot_json(switching, switching_csv, tmp_path, capsys):
     png = tmp_path / "pred.png"
     args = [str(head), "--output", "temp", "--inputs", "u1,u2", "--time", "time",
             "--intersample", "foh,zoh", "--config", str(cfg)]
+    labels, save = [], Figure.savefig
+
+    def saved(fig, *a, **k):  # the axis labels of the figure as written
+        labels.append([(ax.get_xlabel(), ax.get_ylabel()) for ax in fig.axes])
+        return save(fig, *a, **k)
+
+    monkeypatch.setattr(Figure, "savefig", saved)
     assert main(["online", *args, "--plot", str(png), "--json"]) == 0
+    # the time axis is the CSV's time column, not a unit the data may not have (it read
+    # "time [s]" for any record)
+    assert labels == [[("time", "temp")]]
     out = json.loads(capsys.readouterr().out)
     full = switching[4]  # causal: the same models and predictions as the full run so far
     assert [m["a"] for m in out["models"]] == [m["a"] for m in full.models]
