@@ -287,7 +287,8 @@ def _load_signals(args, saved=None):
     if args.delays:
         kwargs["delays"] = _floats(args.delays, "delays")
     if args.time is None and args.dt is None:
-        raise _UserError("give --time COLUMN or --dt SECONDS")
+        raise _UserError("give --time COLUMN or --dt STEP (the sampling interval, in the "
+                         "data's time unit)")
     if getattr(args, "resample", None) is not None:
         if args.time is None:
             raise _UserError(f"--resample {args.resample:g}: needs --time COLUMN (the sample "
@@ -752,7 +753,8 @@ def _cmd_online(args):
         dt = args.dt
         t = np.arange(y.size) * dt
     else:
-        raise _UserError("give --time COLUMN or --dt SECONDS")
+        raise _UserError("give --time COLUMN or --dt STEP (the sampling interval, in the "
+                         "data's time unit)")
     _writable_folder("--checkpoint", args.checkpoint)
     before = {"sse": 0.0, "count": 0, "intervals": 0}
     resumed = partial = False

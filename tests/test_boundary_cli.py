@@ -831,3 +831,16 @@ def test_fuzz_dataset_and_demo(stubbed, fuzzed):
     demo = [(o, v) for o, v in fuzzed if o == "--horizon"]
     _check_property(_argv(["dataset", "forehearth", "-o", out], {}, data))
     _check_property(_argv(["demo", "--out", str(stubbed["dir"] / "demo")], {}, demo))
+
+
+@pytest.mark.parametrize("command", ["identify", "online"])
+def test_no_time_column_and_no_dt_is_one_line_that_does_not_assume_seconds(capsys, tmp_path,
+                                                                         command):
+    """Neither --time nor --dt: one line naming both; --dt is the step in the data's own
+    time unit (it said "--dt SECONDS" for records in minutes or hours)."""
+    path = tmp_path / "r.csv"
+    path.write_text("y,u\n" + "".join(f"{k % 3},{k % 2}\n" for k in range(40)))
+    extra = ["--n", "1", "--N", "2", "--M", "2", "--h", "5"] if command == "identify" else []
+    err = _one_line_error(capsys, 2, [command, str(path), "--output", "y", "--inputs", "u",
+                                      *extra], "give --time COLUMN or --dt STEP")
+    assert "time unit" in err and "SECONDS" not in err, err
