@@ -27,7 +27,7 @@ import numpy as np
 
 from . import _boundary as _b
 from ._pytree import replace_fields
-from ._signals import DETRENDED, INTERSAMPLE, Signals
+from ._signals import DETRENDED, INTERSAMPLE, QUANTUM_SHARE, Signals, decimal_quantum
 
 DETREND_KINDS = ("linear", "constant")
 OUTPUT_RULES = ("linear", "cubic")
@@ -280,9 +280,17 @@ def _grid_tol(dt: float, *times: np.ndarray) -> float:
     """How close a grid time must be to a sample time to count as it: 1e-9 dt, or 8 ulps of
     the largest time (epoch seconds near 1.7e9, logged at 10 Hz with 3 decimals, carry 2.4e-7 s
     of rounding: with 1e-9 dt alone a held input came out one sample early on 13 % of the
-    grid, and the record's last sample was dropped)."""
+    grid, and the record's last sample was dropped), or half the decimal quantum q the
+    sample times were written to, where q is at most `QUANTUM_SHARE` of dt and of their
+    smallest step (30 Hz stamps written in ms are up to 0.5 ms late: a held input came out
+    one sample late on a third to two thirds of the 1/30 grid)."""
     big = max(float(np.max(np.abs(x))) for x in times)
-    return max(_GRID_RTOL * dt, 8 * float(np.spacing(big)))
+    tol = max(_GRID_RTOL * dt, 8 * float(np.spacing(big)))
+    q = decimal_quantum(times[0])
+    step = float(np.min(np.diff(times[0]))) if times[0].size > 1 else dt
+    if q is not None and q <= QUANTUM_SHARE * min(dt, step):
+        tol = max(tol, 0.5 * q * (1 + 1e-6))
+    return tol
 
 
 def _zoh(t_k: np.ndarray, v: np.ndarray, grid: np.ndarray, dt: float) -> np.ndarray:

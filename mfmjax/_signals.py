@@ -23,8 +23,43 @@ INTERSAMPLE = ("zoh", "foh")
 _UNIFORM_RTOL = 1e-6  # allowed relative jitter of the time column against its mean step
 
 
+def decimal_quantum(t: np.ndarray) -> float | None:
+    """The power of ten the time stamps were written to (0.001 for 0.033, 0.067, 0.1, ...):
+    the largest 10^-d, d = 0..12, of which every stamp is a multiple to float64 rounding;
+    None when there is none (stamps computed, not printed)."""
+    t = np.asarray(t, dtype=np.float64)
+    big = float(np.max(np.abs(t))) if t.size else 0.0
+    for d in range(13):
+        s = t * 10.0**d
+        if np.max(np.abs(s - np.round(s)), initial=0.0) <= max(1e-6, 16 * _EPS * big * 10.0**d):
+            return 10.0**-d
+    return None
+
+
+_EPS = float(np.finfo(np.float64).eps)
+# a uniform grid whose stamps were rounded to a quantum q (a logger writing milliseconds at
+# 30 Hz) is uniform when q is at most this share of the step: a missing sample moves a stamp
+# by a whole step from the line, far beyond the q that rounding can
+QUANTUM_SHARE = 0.1
+
+
 def _concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
+
+
+def _rounded_grid(t: np.ndarray, dt: float, rounding: float) -> float | None:
+    """The step of a uniform grid whose stamps `t` were written to a decimal quantum
+    q <= `QUANTUM_SHARE` dt (each within q/2 of the grid, so within q of the line through the
+    first and last stamp): the least-squares slope (3.3e-6 relative error from the end points
+    at 30 Hz in ms over 3000 samples, 4e-9 from the fit); None for any other stamps."""
+    q = decimal_quantum(t)
+    k = np.arange(t.size, dtype=np.float64)
+    line = t[0] + (t[-1] - t[0]) * (k / (t.size - 1))
+    if (q is None or q > QUANTUM_SHARE * dt
+            or float(np.max(np.abs(t - line))) > q * (1 + 1e-6) + rounding):
+        return None
+    kc = k - k.mean()
+    return float(kc @ (t - t[0]) / (kc @ kc))
 
 
 def _per_input(value, K: int, name: str, default, cast):
@@ -377,8 +412,12 @@ class Signals(eqx.Module):
             dt = float((t[-1] - t[0]) / (T - 1))
             # jitter beyond the time stamps' own rounding (epoch seconds near 1.7e9 carry
             # 2.4e-7 s of it, above 1e-6 of a 0.1 s step)
-            rounding = 4 * np.finfo(np.float64).eps * float(np.max(np.abs(t)))
+            rounding = 4 * _EPS * float(np.max(np.abs(t)))
+            grid = None
             if np.max(np.abs(steps - dt)) > max(_UNIFORM_RTOL * dt, rounding):
+                grid = _rounded_grid(t, dt, rounding)
+                dt = grid if grid is not None else dt
+            if grid is None and np.max(np.abs(steps - dt)) > max(_UNIFORM_RTOL * dt, rounding):
                 bad = int(np.argmax(np.abs(steps - dt))) + 1
                 raise ValueError(
                     f"Signals(): time is not uniformly sampled (step at row {bad} is "

@@ -207,6 +207,40 @@ def test_resample_holds_the_samples_of_an_epoch_time_column():
         np.testing.assert_array_equal(np.asarray(sig.u)[:, 0], u)
 
 
+def test_a_uniform_grid_written_in_milliseconds_is_uniform_and_resamples_to_itself():
+    """A 30 Hz logger writing its times in ms (0.033, 0.067, 0.1, ...): Signals refused the
+    column as not uniform and advised resample, whose held input then read sample k - 1 at a
+    third (dt = 1/30) to two thirds (dt = 0.0333333) of the grid, unsaid. Stamps within their
+    decimal quantum q of a uniform grid, q at most a tenth of the step, are that grid now
+    (dt from a least-squares line: error of the end points' slope 3.3e-6, the fit's 4.4e-9,
+    below 1e-8 for every case here); a missing sample, stamps coarser than a tenth of the step
+    and jitter beyond the quantum are still refused."""
+    for fs, T, d, t0 in ((30.0, 3000, 3, 0.0), (7.0, 5000, 2, 12.5), (30.0, 3000, 3, 1.7e9)):
+        t = np.array([float(f"{t0 + k / fs:.{d}f}") for k in range(T)])
+        assert np.max(np.abs(np.diff(t) - 1 / fs)) > 1e-6 / fs  # not uniform to 1e-6
+        u = np.arange(float(T))
+        sig = Signals(y=np.sin(u), u=u, t=t, intersample="zoh")
+        assert sig.n_samples == T and abs(sig.dt * fs - 1) < 1e-8 and sig.t0 == t[0]
+        # the stamps are within their quantum of the grid the record now carries
+        assert np.max(np.abs(np.asarray(sig.t) - t)) <= 10.0**-d
+        for dt in (1 / fs, float(f"{1 / fs:.7f}")):  # the grid itself, and it rounded
+            res = mfmjax.resample(t, np.sin(u), u, dt=dt, intersample="zoh")
+            n = min(res.n_samples, T)
+            np.testing.assert_array_equal(np.asarray(res.u)[:n, 0], u[:n])  # sample k at k
+    t = np.array([float(f"{k / 30:.3f}") for k in range(3000)])
+    for bad, match in ((np.delete(t, 1500), "not uniformly sampled"),  # a missing sample
+                       (np.array([0, 1, 2, 4, 5, 6.0]), "not uniformly sampled"),  # q = 1 > dt/10
+                       (t + np.where(np.arange(3000) == 7, 0.0021, 0.0), "not uniformly")):
+        with pytest.raises(ValueError, match=match):
+            Signals(y=np.zeros(bad.size), t=bad)
+    # exact stamps at 1 kHz (their quantum, 1 ms, is their step): a grid time between two
+    # samples holds the earlier one, as before (no half-quantum look-ahead)
+    t = np.arange(2000) / 1000.0
+    res = mfmjax.resample(t, np.sin(t), np.arange(2000.0), dt=0.00097, intersample="zoh")
+    last = np.searchsorted(t, np.asarray(res.t) + 1e-12, side="right") - 1
+    np.testing.assert_array_equal(np.asarray(res.u)[:, 0], last.astype(float))
+
+
 def test_resample_cubic_output_exact_for_a_cubic():
     t, _ = _irregular(t0=0.0)
     y = 0.5 * t**3 - t**2 + 3.0
