@@ -511,13 +511,24 @@ def _cmd_identify(args):
             out["validation"] = validation
         _print_json(out)
     else:
-        print(f"{args.file}: {sig.n_samples} samples, dt={sig.dt:g}, K={sig.n_inputs}")
+        print(f"{args.file}: {_record_text(args, sig)}")
         print(model.summary())
         if report and "summary" in report:
             print("\n" + report["summary"])
         elif report:
             _print_report(report)
         _print_validation(validation)
+
+
+def _record_text(args, sig) -> str:
+    """The record as read: samples, step, inputs and how each is read between samples (the
+    rule changes the model: the DaISy dryer's b_10 moves 28 % between zoh and foh)."""
+    text = f"{sig.n_samples} samples, dt={sig.dt:g}, K={sig.n_inputs}"
+    if sig.n_inputs:
+        text += f", inputs read as {','.join(sig.intersample)} between samples"
+        if not args.intersample:
+            text += " (the default; --intersample zoh for inputs held between samples)"
+    return text
 
 
 def _refine_report(sig, model, vary_delays: bool) -> dict:
@@ -868,7 +879,8 @@ def _cmd_dataset(args):
     except OSError as err:
         raise _UserError(f"-o: cannot write {args.o}: {err.strerror}") from None
     print(f"wrote {args.o}: {data.shape[0]} samples at 1 s, columns {', '.join(cols)} "
-          f"(input-1 delay {d['delay'].min():.0f}-{d['delay'].max():.0f} s)")
+          f"(input-1 delay {d['delay'].min():.0f}-{d['delay'].max():.0f} s; the inputs are "
+          f"read with --intersample {','.join(d['intersample'])}: the pressure is held)")
 
 
 def _grid(text: str, name: str, integer: bool = False) -> list:
@@ -1064,6 +1076,7 @@ def _cmd_search(args):
         _print_json(out)
     else:
         # estimate's time is the whole call's (its last search's compile/run is a part of it)
+        print(f"{args.file}: {_record_text(args, sig)}")
         print(f"{len(result)} candidates, ranked by "
               f"{'E on held-back data' if args.estimate else args.score} " + (
                   f"(estimate {estimate_s:.1f} s: search, SRIVC and output error)"

@@ -46,7 +46,17 @@ def test_identify_says_when_its_inputs_are_linearly_dependent(csv_file, tmp_path
     assert ("warning: identify(): the inputs ['u1', 'u1_pct'] are linearly dependent"
             in cap.err), cap.err
     assert main(["identify", str(csv_file), *ARGS]) == 0
-    assert "linearly dependent" not in capsys.readouterr().err
+    cap = capsys.readouterr()
+    assert "linearly dependent" not in cap.err
+    # the record line says how each input is read between samples (the rule moves the model;
+    # the text output never said it), and when that rule is the default
+    assert (f"{csv_file}: 2000 samples, dt=0.01, K=2, inputs read as foh,zoh between samples\n"
+            in cap.out), cap.out
+    argv = ["identify", str(csv_file), *ARGS]
+    del argv[argv.index("--intersample"): argv.index("--intersample") + 2]
+    assert main(argv) == 0
+    assert ("K=2, inputs read as foh,foh between samples (the default; --intersample zoh for "
+            "inputs held between samples)" in capsys.readouterr().out)
 
 
 def test_times_of_an_epoch_record_print_in_full(csv_file, tmp_path, capsys):
@@ -147,6 +157,8 @@ def test_dataset_cli(tmp_path, capsys):
 
     p = tmp_path / "fh.csv"
     assert main(["dataset", "forehearth", "--experiment", "2", "-o", str(p)]) == 0
+    # the held pressure is named: read as foh (the CLI's default) it gives another model
+    assert "read with --intersample foh,zoh" in capsys.readouterr().out
     cols = read_csv(p)
     assert list(cols) == ["time", "zone_temperature", "previous_zone_temperature",
                           "mixture_pressure"]  # the pull rate is not measured
