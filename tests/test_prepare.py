@@ -215,7 +215,10 @@ def test_a_uniform_grid_written_in_milliseconds_is_uniform_and_resamples_to_itse
     (dt from a least-squares line: error of the end points' slope 3.3e-6, the fit's 4.4e-9,
     below 1e-8 for every case here); a missing sample, stamps coarser than a tenth of the step
     and jitter beyond the quantum are still refused."""
-    for fs, T, d, t0 in ((30.0, 3000, 3, 0.0), (7.0, 5000, 2, 12.5), (30.0, 3000, 3, 1.7e9)):
+    # (80 Hz in ms: every other stamp a tie, rounded either way, so the stamps span a whole
+    # quantum about the grid)
+    for fs, T, d, t0 in ((30.0, 3000, 3, 0.0), (7.0, 5000, 2, 12.5), (30.0, 3000, 3, 1.7e9),
+                         (80.0, 4000, 3, 0.0)):
         t = np.array([float(f"{t0 + k / fs:.{d}f}") for k in range(T)])
         assert np.max(np.abs(np.diff(t) - 1 / fs)) > 1e-6 / fs  # not uniform to 1e-6
         u = np.arange(float(T))

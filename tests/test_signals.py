@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from mfmjax import Signals
+from mfmjax._signals import read_csv
 
 
 def _ok(T=50):
@@ -98,13 +99,16 @@ def test_names_of_another_count_than_the_fields_are_named(tmp_path):
 def test_epoch_time_column_is_uniform_to_its_rounding():
     """Time stamps in epoch seconds (1.7e9 + k 0.1) carry 2.4e-7 s of rounding, above 1e-6 of
     the 0.1 s step: they are uniform to their own precision and accepted (they were refused as
-    "not uniformly sampled", with both steps printed as 0.1); a real jitter of 1e-3 s is not."""
+    "not uniformly sampled", with both steps printed as 0.1); a real jitter of 1e-3 s is not,
+    where the stamps resolve it (written to 1e-4 s; written to 1e-3 s, a 1e-3 s step is what a
+    grid half a quantum off the digits shows: accepted, test_prepare.py's 80 Hz in ms)."""
     y, u = _ok()
     t = 1.7e9 + 0.1 * np.arange(y.size)
     s = Signals.from_columns({"t": t, "y": y, "u": u[:, 0]}, output="y", inputs=["u"], time="t")
     # dt from the end stamps, each rounded by half a unit in the last place
     assert abs(s.dt - 0.1) <= np.spacing(t[-1]) / (y.size - 1) and s.t0 == t[0]
     t[20] += 1e-3
+    t[30] += 1e-4  # stamps written to 1e-4 s
     with pytest.raises(ValueError, match=r"not uniformly sampled \(step at row 2[01] is 0\.(1009|0989)"):
         Signals.from_columns({"t": t, "y": y, "u": u[:, 0]}, output="y", inputs=["u"], time="t")
 
@@ -266,6 +270,12 @@ def test_dataframe_labels_are_matched_as_text_and_duplicates_refused():
     ("time;T [degC, PV];P\n0;1,5;2,5\n1;1,6;2,7\n", "fields are separated by ';'"),
     ("t\ty\tu\n0\t1,5\t2,5\n1\t1,6\t2,7\n", "'1,5'.*a decimal comma\\?.*decimal=','"),
     ('t,y,u\n0,"1,5",2.5\n1,"1,6",2.7\n', "'1,5'.*a decimal comma\\?"),
+    # a thousands separator: "1,000" is 1000 or, with a decimal comma, 1.0 (the hint named
+    # decimal=',' alone, which reads 1.0); "12,345.5" can only be a separator
+    ('t,y,u\n0,"1,000",2.5\n1,"1,250",2.7\n',
+     "'1,000'.*thousands separator or a decimal comma\\?.*thousands=','.*or decimal=','"),
+    ('t,y,u\n0,"12,345.5",2.5\n1,"1,250.0",2.7\n',
+     "'12,345.5'.*a thousands separator\\? .*thousands=','\\) \\(1,000 is 1000\\) and "),
 ])
 def test_decimal_commas_are_named(tmp_path, text, match):
     """A European export (';' and decimal commas) said "unknown column 'y'; available:
@@ -341,3 +351,23 @@ def test_a_headless_file_starting_at_rest_gets_the_names_hint(tmp_path):
                                          r"the first line holds numbers, so the file has no "
                                          r"header"):
         Signals.from_csv(path, output="theta", inputs=["q"], time="t")
+
+
+@pytest.mark.parametrize("end", ["\n", "\r\n", "\r"])
+def test_csv_line_ends_of_every_system_read_the_same(tmp_path, end):
+    """Old-Mac line ends (CR alone) made the whole file one header line: `read_csv` raised
+    the csv module's "new-line character seen in unquoted field", and the CLI called it a bug
+    in mfmjax. LF, CRLF and CR read the same numbers now, with a BOM too, through the C
+    path (all numbers) and the line parser (an empty cell)."""
+    t = np.arange(50) * 0.1
+    rows = [f"{float(a)!r},{float(np.sin(a))!r},{float(np.cos(a))!r}" for a in t]
+    for body, nan_at in ((rows, None), (rows[:7] + [f"{float(t[7])!r},,1.0"] + rows[8:], 7)):
+        path = tmp_path / f"r{nan_at}.csv"
+        path.write_bytes(("\ufeff" + end.join(["t,y,u", *body]) + end).encode("utf-8"))
+        cols = read_csv(path)
+        assert list(cols) == ["t", "y", "u"] and cols["t"].size == 50
+        np.testing.assert_array_equal(cols["t"], t)
+        y = np.sin(t)
+        if nan_at is not None:
+            y[nan_at] = np.nan
+        np.testing.assert_array_equal(cols["y"], y)
