@@ -639,6 +639,8 @@ class Signals(eqx.Module):
         arrays = {}
         for name in [output, *inputs] + ([time] if time else []):
             arrays[name] = np.asarray(columns[name], dtype=np.float64)
+        if time and np.asarray(columns[time]).dtype in (np.float32, np.float16):
+            arrays[time] = np.asarray(columns[time])  # Signals names its lost precision
         _warn_frozen(source, arrays, [output, *inputs], time)
         u = np.stack([arrays[c] for c in inputs], axis=1) if inputs else None
         if resample is not None:
@@ -735,6 +737,8 @@ def _dataframe_column(series, name: str) -> np.ndarray:
         if first.empty:
             return np.full(len(series), np.nan)
         return (series - first.iloc[0]).dt.total_seconds().to_numpy(np.float64, na_value=np.nan)
+    if series.dtype.kind == "f" and series.dtype.itemsize < 8:  # float32 stays float32 here,
+        return series.to_numpy()  # so that a time column's lost precision is named (Signals)
     try:
         return series.to_numpy(dtype=np.float64, na_value=np.nan)
     except (TypeError, ValueError):

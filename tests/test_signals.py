@@ -304,6 +304,16 @@ def test_misleading_causes_are_named_rightly(tmp_path):
     with pytest.raises(ValueError, match="the time column is float32, whose precision at "
                                          "1.7e\\+09 is 128: give it as float64"):
         Signals(y, u, t=epoch)
+    # the same column through from_columns or a DataFrame: they converted it to float64 first,
+    # and the advice was "sort the record or drop duplicate rows" for rows in order
+    pd = pytest.importorskip("pandas")
+    cols = {"t": epoch, "y": y, "u": u[:, 0]}
+    for build in (lambda: Signals.from_columns(cols, output="y", inputs=["u"], time="t"),
+                  lambda: Signals.from_dataframe(pd.DataFrame(cols), output="y", inputs=["u"],
+                                                 time="t")):
+        with pytest.raises(ValueError, match="the time column is float32, whose precision at "
+                                             "1.7e\\+09 is 128: give it as float64"):
+            build()
     with pytest.raises(ValueError, match="give either t .* or t0, not both"):
         Signals(y, u, t=np.arange(50.0), t0=5.0)
     with pytest.raises(ValueError, match="give either a time column .* or t0, not both"):
