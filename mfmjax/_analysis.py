@@ -323,13 +323,7 @@ def model_and_covariance(obj, covariance, fn: str):
         names = tuple(getattr(obj, "names", ()) or ()) or None
         held = getattr(obj, "joint_covariance", None)
         if covariance is None and held is not None:
-            joint = np.array(held, dtype=np.float64)
-            p = joint.shape[0] - model.n_inputs
-            lost = p + np.flatnonzero(~np.all(np.isfinite(joint[p:]), axis=1))
-            joint[lost, :] = joint[:, lost] = 0.0  # a delay fitted down to its bound 0 (inf
-            # std error, warned by the fit) counts as known; the others keep their share
-            if not np.all(np.isfinite(joint)):  # an undetermined parameter: no joint bands
-                joint = None
+            joint = usable_joint(model, held)
         if covariance is None:
             covariance = usable_covariance(model, obj.covariance)
             if covariance is None:
@@ -350,14 +344,18 @@ def model_and_covariance(obj, covariance, fn: str):
     cov = _b.array(fn, "covariance", covariance, ndim=2,
                    fix="an undetermined parameter (infinite variance) has no band: give a finite "
                        "covariance, or leave it out")
-    p = len(free)
-    if cov.shape != (p, p):
+    p, K = len(free), model.n_inputs
+    if K and cov.shape == (p + K, p + K) and joint is None:  # a joint covariance given
+        joint, cov = cov, cov[:p, :p]
+    elif cov.shape != (p, p):
         raise ValueError(f"{fn}(): covariance must be ({p}, {p}), ordered as the free parameters "
-                         f"{list(free)} (got shape {cov.shape})")
+                         f"{list(free)}" + (f", or ({p + K}, {p + K}) with each input's delay "
+                                            "after them (a fit's joint_covariance)" if K else "")
+                         + f" (got shape {cov.shape})")
     if np.any(np.diag(cov) < 0) or not np.allclose(cov, cov.T, rtol=1e-8, atol=0.0):
         raise ValueError(f"{fn}(): covariance must be symmetric with a non-negative diagonal")
     cov = np.asarray(cov, dtype=np.float64)
-    worst = _least_correlation_eigenvalue(cov)
+    worst = _least_correlation_eigenvalue(cov if joint is None else joint)
     if worst < -PSD_TOL:  # clamped variances gave bands of zero width
         raise ValueError(f"{fn}(): covariance is not positive semidefinite (its correlation "
                          f"matrix has the eigenvalue {worst:.3g}): no distribution has it; "
@@ -380,6 +378,22 @@ def _least_correlation_eigenvalue(cov) -> float:
         return 0.0
     s = np.sqrt(d[pos])
     return float(np.linalg.eigvalsh(cov[np.ix_(pos, pos)] / s[:, None] / s[None, :]).min())
+
+
+def usable_joint(model: Model, joint):
+    """A fit's `joint_covariance` (of the free parameters and each input's delay) as a float64
+    matrix for the bands, a delay fitted down to its bound 0 (inf std error, warned by the
+    fit) counted as known (zero rows; the others keep their share); None when it is absent,
+    misshapen or not finite elsewhere (an undetermined parameter: no joint bands)."""
+    if joint is None:
+        return None
+    joint = np.array(joint, dtype=np.float64)
+    p = len(free_parameters(model)[0])
+    if joint.shape != (p + model.n_inputs,) * 2:
+        return None
+    lost = p + np.flatnonzero(~np.all(np.isfinite(joint[p:]), axis=1))
+    joint[lost, :] = joint[:, lost] = 0.0
+    return joint if np.all(np.isfinite(joint)) else None
 
 
 def usable_covariance(model: Model, covariance):
@@ -505,7 +519,9 @@ def step_response(model, t_final=None, *, covariance=None, n_points: int = 500) 
 
     **Arguments:** `model`: a `Model`, or a fit carrying its covariance (`Estimate`,
     `OutputErrorFit`, `SrivcFit`); `covariance`: of `free_parameters(model)` (a_0..a_{n-1},
-    b_kj, offset), overrides the fit's. **Returns:** `StepResponse`.
+    b_kj, offset), or a joint one with each input's delay after them (a fit's
+    `joint_covariance`, `load_covariance(path, joint=True)`), overrides the fit's.
+    **Returns:** `StepResponse`.
     """
     _b.eager_only("step_response", model, t_final, covariance)
     model, cov, joint = model_and_covariance(model, covariance, "step_response")
@@ -701,7 +717,8 @@ def _continuous_phase(ang, w, a, b) -> np.ndarray:
 
 def saved_covariance(path, model: Model):
     """(covariance or None, a sentence saying which) from a model file written by `save_model`
-    (`load_covariance`)."""
+    (`load_covariance`): the joint one of the parameters and the delays where the file holds
+    it, else the parameters' (the delays then count as known, said where one is nonzero)."""
     from ._persist import load_covariance
 
     cov = load_covariance(path, model)
@@ -710,4 +727,13 @@ def saved_covariance(path, model: Model):
                       "model without finite standard errors, e.g. an estimate whose method is "
                       "'mfm'; from Python: save_model(model, path, "
                       "covariance=estimate.covariance) where they are finite)")
-    return cov, "bands: 99 % (+-2.576 sigma, delta method on the saved covariance)"
+    joint = load_covariance(path, model, joint=True)
+    text = "bands: 99 % (+-2.576 sigma, delta method on the saved covariance"
+    if joint is not None:
+        return joint, text + ", the fitted delays' uncertainty included)"
+    if np.any(np.asarray(model.delays) != 0):
+        return cov, (text + "; the delays count as known: the file holds no covariance of "
+                     "them, which a fit of the delays saves (identify --refine --delays, "
+                     "search --estimate; from Python: save_model(..., "
+                     "joint_covariance=fit.joint_covariance)))")
+    return cov, text + ")"

@@ -489,13 +489,14 @@ def _cmd_identify(args):
     report = _refine_report(sig, model, bool(args.delays)) if args.refine else None
     validation = _validation_report(args, full, report["model"] if report else model)
     cov = report.pop("covariance", None) if report else None  # saved for report's bands
+    joint = report.pop("joint_covariance", None) if report else None  # (with the delays')
     if args.save:
-        from ._analysis import usable_covariance
+        from ._analysis import usable_covariance, usable_joint
         from ._persist import save_model
 
         saved = report["model"] if report else model
         save_model(saved, args.save, covariance=usable_covariance(saved, cov),
-                   record=_record(args, sig, trend))
+                   joint_covariance=usable_joint(saved, joint), record=_record(args, sig, trend))
     _offset_note(full)  # after the work: a user error stays one line
     _no_inputs_note(args)
     for w in caught:  # what the status alone does not say (the inputs that are dependent)
@@ -562,7 +563,7 @@ def _refine_report(sig, model, vary_delays: bool) -> dict:
         "undetermined": [n for n, e in zip(oe.names, oe.std_errors) if not math.isfinite(e)],
         "parameters": {name: {"value": float(v), "std_error": float(e)}
                        for name, v, e in zip(oe.names, oe.theta, oe.std_errors)},
-        "covariance": oe.covariance,
+        "covariance": oe.covariance, "joint_covariance": oe.joint_covariance,
         "delay_std_errors": _delay_std_json(oe.delay_std_errors),
     }
 
@@ -1022,7 +1023,7 @@ def _cmd_search(args):
                   "parameters": {k: {"value": float(v), "std_error": float(e)} for k, v, e in
                                  zip(est.names, _free_values(est.model), est.std_errors)},
                   "delay_std_errors": _delay_std_json(est.delay_std_errors),
-                  "covariance": est.covariance}
+                  "covariance": est.covariance, "joint_covariance": est.joint_covariance}
     else:
         result = mfmjax.search(sig, progress=_Progress("search"), identify=ident, **kwargs)
     if args.refine:  # on the data the search fitted (its identification window)
@@ -1030,6 +1031,7 @@ def _cmd_search(args):
         sig_best = _with_delays(sig if ident is None else sig.window(*ident), best.delays)
         report = _refine_report(sig_best, best, bool(grid_delays))
     cov = report.pop("covariance", None) if report else None  # saved for report's bands
+    joint = report.pop("joint_covariance", None) if report else None  # (with the delays')
     validation = _validation_report(args, sig, report["model"] if report else result.best())
     if args.estimate and validation and validation.get("fit") is not None:
         held = [v for k, v in est.holdout.items() if k.startswith("chosen: ")]
@@ -1043,12 +1045,12 @@ def _cmd_search(args):
                 "disturbance, a drift); the model is valid for the estimation data's regime")
             print(f"note: {validation['note']}", file=sys.stderr)
     if args.save:  # after everything that can fail: a failed command writes no file
-        from ._analysis import usable_covariance
+        from ._analysis import usable_covariance, usable_joint
         from ._persist import save_model
 
         saved = report["model"] if report else result.best()
         save_model(saved, args.save, covariance=usable_covariance(saved, cov),
-                   record=_record(args, sig, trend))
+                   joint_covariance=usable_joint(saved, joint), record=_record(args, sig, trend))
     if not args.estimate:  # estimate's notes say it, with its own decision
         _offset_note(sig)  # after the work: a user error stays one line
     _no_inputs_note(args)
@@ -1175,7 +1177,7 @@ def _cmd_report(args):
 
     args.model = _model_path(args)
     model = mfmjax.load_model(args.model)
-    cov, note = an.saved_covariance(args.model, model)
+    cov, note = an.saved_covariance(args.model, model)  # the joint one where it was saved
     sig = _load_signals(args, _saved_lines(args.model, args))[0]
     window = _window(args.window, "window") if args.window else None
     ob = _observer_window(args.observer_window, window or _whole(sig), sig,

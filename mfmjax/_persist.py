@@ -87,15 +87,21 @@ def atomic_write(path, data: bytes) -> None:
 RECORD_KEYS = ("dt", "detrend", "trend", "columns")  # how the identification data were read (`save_model`)
 FIELDS = ("format", "version", "n", "m", "a", "b", "delays", "intersample", "offset", "theta", "J",
           "J_rel", "cond", "status", "output_name", "input_names", "N", "M", "h", "record",
-          "covariance")  # what `save_model` writes (`Model.to_dict` and its own entries)
+          "covariance", "joint_covariance")  # what `save_model` writes (`Model.to_dict` and
+# its own entries)
 
 
-def save_model(model: Model, path, *, covariance=None, record=None) -> None:
+def save_model(model: Model, path, *, covariance=None, joint_covariance=None,
+               record=None) -> None:
     """Write `model` (concrete) to a JSON file (atomically: see `atomic_write`).
 
     `covariance` (optional): of the free parameters (`Estimate.covariance`,
     `OutputErrorFit.covariance`), stored with their names for `mfmjax report`'s bands;
-    `load_model` ignores it, and files without it stay valid. `record` (optional): how the
+    `load_model` ignores it, and files without it stay valid. `joint_covariance` (optional):
+    a fit's covariance of the free parameters and each input's delay (`joint_covariance` of
+    `OutputErrorFit` or `Estimate`, whose delays were fitted), stored beside it so that the
+    bands of the loaded model hold the delays' uncertainty (`load_covariance(path,
+    joint=True)`); a delay fitted down to its bound 0 counts as known. `record` (optional): how the
     identification data were read, `{"dt": step, "detrend": None | "linear" | "constant"}`
     (the CLI stores it; `mfmjax validate` and `report` compare it with their data's and say
     where it differs: a model of detrended data on raw data gave fit -23434 %), and with
@@ -122,9 +128,38 @@ def save_model(model: Model, path, *, covariance=None, record=None) -> None:
                              "'mfm') or with a parameter the data do not determine has no "
                              "usable covariance; save the model without it (covariance=None)")
         doc["covariance"] = {"names": list(names), "matrix": cov.tolist()}
+    if joint_covariance is not None:
+        from ._analysis import usable_joint
+
+        names = joint_names(model)
+        joint = usable_joint(model, joint_covariance)
+        if joint is None:
+            raise ValueError(f"save_model(): joint_covariance must be a ({len(names)}, "
+                             f"{len(names)}) matrix ordered as {names}, finite but for a "
+                             "delay's rows (a delay fitted down to its bound 0); save the model "
+                             "without it where a parameter is undetermined")
+        doc["joint_covariance"] = {"names": names, "matrix": joint.tolist()}
     if record is not None:
-        dt = record.get("dt") if isinstance(record, dict) else None
-        if (not isinstance(record, dict) or set(record) - set(RECORD_KEYS)
+        if not _record_ok(record, model):
+            raise ValueError(f"save_model(): record must be a dict with keys from {RECORD_KEYS}: "
+                             "dt a finite step > 0, detrend None, 'linear' or 'constant', "
+                             f"trend Trend.to_dict() of that kind and the model's inputs, "
+                             f"columns the output's and inputs' names (got {record!r})")
+        doc["record"] = {k: (float(v) if k == "dt" else v) for k, v in record.items()}
+    atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
+
+
+def joint_names(model: Model) -> list:
+    """The rows of a joint covariance: the free parameters, then "delay <input>" per input."""
+    from ._output_error import free_parameters
+
+    return [*free_parameters(model)[0], *(f"delay {n}" for n in model.input_names)]
+
+
+def _record_ok(record, model: Model) -> bool:
+    """`record` is what `save_model` accepts (and writes)."""
+    dt = record.get("dt") if isinstance(record, dict) else None
+    return not (not isinstance(record, dict) or set(record) - set(RECORD_KEYS)
                 or ("dt" in record and not (isinstance(dt, (int, float)) and not isinstance(
                     dt, bool) and math.isfinite(dt) and dt > 0))
                 or record.get("detrend") not in (None, "linear", "constant")
@@ -133,13 +168,7 @@ def save_model(model: Model, path, *, covariance=None, record=None) -> None:
                 or ("columns" in record and not (
                     isinstance(record["columns"], list)
                     and len(record["columns"]) == model.n_inputs + 1
-                    and all(isinstance(c, str) for c in record["columns"])))):
-            raise ValueError(f"save_model(): record must be a dict with keys from {RECORD_KEYS}: "
-                             "dt a finite step > 0, detrend None, 'linear' or 'constant', "
-                             f"trend Trend.to_dict() of that kind and the model's inputs, "
-                             f"columns the output's and inputs' names (got {record!r})")
-        doc["record"] = {k: (float(v) if k == "dt" else v) for k, v in record.items()}
-    atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
+                    and all(isinstance(c, str) for c in record["columns"]))))
 
 
 def _trend_ok(trend, kind, n_inputs: int) -> bool:
@@ -154,33 +183,42 @@ def _trend_ok(trend, kind, n_inputs: int) -> bool:
         return False
 
 
-def load_covariance(path, model: Model | None = None):
+def load_covariance(path, model: Model | None = None, *, joint: bool = False):
     """The covariance `save_model(..., covariance=...)` stored in a model file (of
     `free_parameters(model)`, `model` default `load_model(path)`), checked against the model's
-    free parameters; None when the file holds none. For the bands of `step_response` and
-    `frequency_response` on a loaded model (`mfmjax report` reads it the same way)."""
+    free parameters; None when the file holds none. With `joint=True`, the joint covariance
+    of the parameters and each input's delay (`save_model(..., joint_covariance=...)`; None
+    when the file holds none: its delays count as known). For the bands of `step_response`
+    and `frequency_response` on a loaded model (`mfmjax report` reads it the same way)."""
+    from ._analysis import PSD_TOL, _least_correlation_eigenvalue
     from ._output_error import free_parameters
 
     model = load_model(path) if model is None else model
     with open(path, "rb") as fh:  # load_model has read and checked it
         doc = json.loads(fh.read().decode("utf-8"))
-    entry = doc.get("covariance") if isinstance(doc, dict) else None
+    key = "joint_covariance" if joint else "covariance"
+    entry = doc.get(key) if isinstance(doc, dict) else None
     if entry is None:
         return None
-    free = list(free_parameters(model)[0])
+    free = joint_names(model) if joint else list(free_parameters(model)[0])
     try:
         names, cov = list(entry["names"]), np.asarray(entry["matrix"], dtype=np.float64)
     except (KeyError, TypeError, ValueError):
-        raise ValueError(f"load_covariance(): {path}: the covariance entry needs 'names' and a "
+        raise ValueError(f"load_covariance(): {path}: the {key} entry needs 'names' and a "
                          "numeric 'matrix'") from None
     if names != free or cov.shape != (len(free), len(free)) or not np.all(np.isfinite(cov)):
-        raise ValueError(f"load_covariance(): {path}: the covariance is not a finite matrix "
-                         f"over the model's free parameters {free} (got names {names}, shape "
-                         f"{cov.shape})")
+        raise ValueError(f"load_covariance(): {path}: the {key} is not a finite matrix "
+                         f"over the model's {'parameters and delays' if joint else 'free parameters'}"
+                         f" {free} (got names {names}, shape {cov.shape})")
     if not (np.allclose(cov, cov.T, rtol=1e-12, atol=0.0) and np.all(np.diag(cov) >= 0)):
-        raise ValueError(f"load_covariance(): {path}: the covariance must be symmetric with a "
+        raise ValueError(f"load_covariance(): {path}: the {key} must be symmetric with a "
                          "non-negative diagonal (edited by hand?); save it again with "
-                         "save_model(..., covariance=...)")
+                         f"save_model(..., {key}=...)")
+    worst = _least_correlation_eigenvalue(cov)
+    if worst < -PSD_TOL:  # (it reached step_response, whose error named neither file nor field)
+        raise ValueError(f"load_covariance(): {path}: the {key} is not positive semidefinite "
+                         f"(its correlation matrix has the eigenvalue {worst:.3g}; edited by "
+                         f"hand?); save it again with save_model(..., {key}=...)")
     return cov
 
 
@@ -229,11 +267,24 @@ def load_model(path) -> Model:
             if key in doc and doc[key] != own:
                 raise ValueError(f"{key}={doc[key]!r} but the coefficients a and b give "
                                  f"{key}={own}")
-        if doc.get("h") is not None:
+        given = [k for k in ("N", "M", "h") if doc.get(k) is not None]
+        if given and len(given) < 3:  # (a null h loaded N, M and J as a model without them)
+            missing = [k for k in ("N", "M", "h") if k not in given]
+            raise ValueError(f"it has {', '.join(given)} but no {', '.join(missing)}: a model "
+                             "identified by MFM stores N, M and h (save it again), one of "
+                             "another method none of them")
+        if given:
             model = _with_mf(model, doc)
         else:  # a model without MF settings (output error, SRIVC, estimate) keeps its status
             model = replace_fields(model, status=np.int32(_status(doc.get("status"))),
-                                   **_free_theta(model, doc.get("theta")))
+                                   **_free_theta(model, doc.get("theta")), **{
+                                       k: jax.device_put(np.float64(doc[k])) for k in
+                                       ("J", "J_rel", "cond") if doc.get(k) is not None})
+        if "record" in doc and not _record_ok(doc["record"], model):
+            raise ValueError(f"record must be what save_model writes: a dict with keys from "
+                             f"{RECORD_KEYS}, dt a finite step > 0, detrend null, 'linear' or "
+                             "'constant', trend its lines for the model's inputs, columns the "
+                             f"output's and inputs' names (got {doc['record']!r})")
         # the unstable bit follows a (a hand-edited a kept `ok`)
         unstable = not is_stable(np.asarray(model.a))
         status = (int(model.status) & ~int(Status.UNSTABLE)) | (int(Status.UNSTABLE) * unstable)

@@ -268,6 +268,17 @@ def test_load_model_status_says_unstable_when_a_is(model_doc, tmp_path):
         (lambda d: d.update(n=2), r"n=2 but the coefficients a and b give n=3"),
         (lambda d: d.update(m=[1, 1]), r"m=\[1, 1\] but the coefficients a and b give m=\[1, 0\]"),
         (lambda d: d.update(N=2), "N=2 is below n=3; N must be >= n"),
+        # h removed or null: loaded as a model without MF settings, J NaN, unsaid (an audit)
+        (lambda d: d.pop("h"), "it has N, M but no h: a model identified by MFM stores N, M"),
+        (lambda d: d.update(h=None), "it has N, M but no h"),
+        (lambda d: d.update(M=None), "it has N, h but no M"),
+        # a record save_model would refuse: accepted at load, then ignored or failing later
+        (lambda d: d.update(record="abc"), "record must be what save_model writes"),
+        (lambda d: d.update(record={"dt": -1.0}), "record must be what save_model writes"),
+        (lambda d: d.update(record={"detrend": "quadratic"}), "record must be"),
+        (lambda d: d.update(record={"columns": ["y"]}), "record must be"),
+        (lambda d: d.update(record={"detrend": "linear", "trend": {"kind": "linear"}}),
+         "record must be"),
     ],
 )
 def test_load_model_refuses_bad_coefficients(model_doc, tmp_path, change, match):

@@ -141,7 +141,13 @@ def test_search_estimate_save_keeps_the_covariance_for_report(files, capsys):
     assert abs(est["model"]["delays"][0] - 0.15) < 4 * est["delay_std_errors"][0]
     doc = json.loads(saved.read_text())
     assert doc["covariance"]["names"] == ["a_0", "a_1", "b_10"]
+    # the fitted delay's share is saved with it, and the report's bands hold it (they held
+    # the delay known, unsaid: a phase band 7.5x too narrow at w = 10 in an audit's case)
+    assert doc["joint_covariance"]["names"] == ["a_0", "a_1", "b_10", "delay valve"]
+    joint = np.array(doc["joint_covariance"]["matrix"])
+    assert joint[3, 3] == pytest.approx(est["delay_std_errors"][0] ** 2, rel=1e-9)
+    np.testing.assert_array_equal(joint[:3, :3], doc["covariance"]["matrix"])
     assert main(["report", str(saved), str(folder / "data.csv"), *ARGS, "-o",
                  str(folder / "est")]) == 0
     assert json.loads((folder / "est" / "report.json").read_text())["bands"] is True
-    capsys.readouterr()
+    assert "the fitted delays' uncertainty included" in capsys.readouterr().out
