@@ -353,11 +353,20 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
     ends = np.round((times - signals.t0) / signals.host_dt).astype(np.int32)
     e_np = [int(v) for v in ends]
     if min(e_np) - (length - 1) < 0 or max(e_np) > signals.n_samples - 1:
+        j = next(i for i, e in enumerate(e_np) if e - (length - 1) < 0
+                 or e > signals.n_samples - 1)
+        end = signals.t0 + (signals.n_samples - 1) * signals.host_dt
         raise ValueError(
-            "moving_final_states(): every t_j must have T_ob of data before it inside the record"
-        )
-    _window(model, signals, (signals.t0, signals.t0 + (length - 1) * signals.host_dt),
-            "moving_final_states")
+            f"moving_final_states(): every t_j must have T_ob of data before it inside the "
+            f"record [{signals.t0:.15g}, {end:.15g}]: t_j = {times[j]:.15g} (times[{j}]) "
+            + ("lies after its end" if e_np[j] > signals.n_samples - 1 else
+               f"has less than T_ob = {T_ob:g} before it; the earliest is "
+               f"{signals.t0 + (length - 1) * signals.host_dt:.15g}"))
+    try:
+        _window(model, signals, (signals.t0, signals.t0 + (length - 1) * signals.host_dt),
+                "moving_final_states")
+    except ValueError as err:  # (a window too short for the order): say which T_ob
+        raise ValueError(f"{err} (T_ob = {T_ob:g}: each window ends at its t_j)") from None
     if _b.is_traced(signals.y) or _b.is_traced(signals.u):
         y, u, bound = signals.y, signals.u, length
     else:  # the record and the windows padded to their buckets: one program per bucket pair

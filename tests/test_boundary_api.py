@@ -216,6 +216,17 @@ def test_moving_final_states_refuses(data):
         mfmjax.moving_final_states(model, sig, NAN, [10.0])
     with pytest.raises(ValueError, match=r"times has a NaN or inf value"):
         mfmjax.moving_final_states(model, sig, 5.0, [NAN])
+    # which t_j, and what T_ob asked (they named neither: an audit of the README's claim)
+    end = (sig.n_samples - 1) * DT
+    with pytest.raises(ValueError, match=r"every t_j must have T_ob of data before it inside "
+                                         r"the record \[0, .*\]: t_j = 3 \(times\[1\]\) has less "
+                                         r"than T_ob = 5 before it; the earliest is 5"):
+        mfmjax.moving_final_states(model, sig, 5.0, [10.0, 3.0])
+    with pytest.raises(ValueError, match=rf"t_j = {end + 1:g} \(times\[0\]\) lies after its end"):
+        mfmjax.moving_final_states(model, sig, 5.0, [end + 1])
+    with pytest.raises(ValueError, match=r"need at least .* \(T_ob = 0.1: each window ends at its "
+                                         r"t_j\)"):
+        mfmjax.moving_final_states(model, sig, 0.1, [15.0])
 
 
 def test_fit_percent_of_constant_output_is_undefined():
