@@ -197,9 +197,18 @@ def _check_validation_window(args, sig) -> None:
 TIME_NAMES = ("t", "time", "Time", "TIME", "timestamp", "Timestamp", "datetime", "date")
 
 
-def _time_column_note(args) -> None:
+# column names of a sample counter (DaISy files number their samples in a column "k")
+INDEX_NAMES = ("k", "n", "i", "idx", "index", "Index", "sample", "samples", "Sample", "nr", "no")
+
+
+def _time_column_note(args, sig) -> None:
     """On stderr: --dt gives the times while the file has a column that looks like its own
-    time (a logging gap in it went unseen: the samples after it were shifted)."""
+    time (a logging gap in it went unseen: the samples after it were shifted); --time names
+    a sample counter (its step 1 made the model's time unit one sample, unsaid)."""
+    if args.time in INDEX_NAMES and sig.dt == 1.0 and float(sig.t0).is_integer():
+        print(f"note: --time {args.time} counts samples (step 1), so the model's time unit is "
+              "one sample: its coefficients, delays and h are per sample; give --dt STEP "
+              "instead (without --time) for the record's own time unit", file=sys.stderr)
     if args.dt is None or args.time is not None or args.names:
         return
     try:
@@ -304,7 +313,7 @@ def _load_signals(args, saved=None):
         names=[c.strip() for c in args.names.split(",")] if args.names else None,
         **kwargs,
     )
-    _time_column_note(args)
+    _time_column_note(args, sig)
     if getattr(args, "detrend", None):
         from ._prepare import detrend
 

@@ -280,6 +280,18 @@ def test_validate_and_report_say_when_the_columns_differ_from_the_models(csv_fil
     # a sample counter read as time (an audit of 2026-11-28: --time k on 1, 2, 3, ...): the
     # fix the note names
     assert "if --time names a sample counter, read the file with --dt 0.01 instead" in err
+    # identify on such a file has no model to compare with: the counter's name says it (the
+    # model came out per sample, unsaid); a column named as a time says nothing
+    counted = tmp_path / "counted.csv"
+    counted.write_text("\n".join(["k,temp,u1,u2"] + [f"{k + 1},{r.split(',', 1)[1]}"
+                                                      for k, r in enumerate(rows[1:])]))
+    argv = ["identify", str(counted), *ARGS]
+    argv[argv.index("--time") + 1], argv[argv.index("--h") + 1] = "k", "200"
+    assert main(argv) == 0
+    assert ("note: --time k counts samples (step 1), so the model's time unit is one sample"
+            in capsys.readouterr().err)
+    assert main(["identify", str(csv_file), *ARGS]) == 0
+    assert "counts samples" not in capsys.readouterr().err
     detrended = tmp_path / "detrended.json"
     assert main(["identify", str(csv_file), *ARGS, "--detrend", "linear", "--save",
                  str(detrended)]) == 0
