@@ -1210,13 +1210,17 @@ def estimate_outputs(records, **kwargs) -> tuple[Estimate, ...]:
         same = (r.dt == first.dt and r.n_samples == first.n_samples
                 and r.u.shape == first.u.shape and bool(np.array_equal(r.u, first.u)))
         if not same:  # what differs (a NaN row dropped by resample= shortens one output)
+            def shown(x):
+                return (f"{x.output_name!r}: {x.n_samples} samples from t0 = {x.t0:.15g}, "
+                        f"dt = {x.dt:.15g}, inputs {list(x.input_names)}")
+            crossed = sorted(set(r.input_names) & {x.output_name for x in records})
             raise ValueError(
-                f"estimate_outputs(): record {i} ({r.output_name!r}: {r.n_samples} samples "
-                f"from t0 = {r.t0:.15g}, dt = {r.dt:.15g}) does not share record 0's inputs "
-                f"and sampling ({first.output_name!r}: {first.n_samples} samples from t0 = "
-                f"{first.t0:.15g}, dt = {first.dt:.15g}"
+                f"estimate_outputs(): record {i} ({shown(r)}) does not share record 0's inputs "
+                f"and sampling ({shown(first)}"
                 + ("" if r.n_samples != first.n_samples or r.u.shape != first.u.shape
                    or r.dt != first.dt else "; the inputs' values differ")
+                + (f"; {crossed} is an output of this list and an input of record {i}"
+                   if crossed else "")
                 + "); give one Signals per output of one experiment, on one time grid")
         for what, mine, theirs in [("intersample rules", r.intersample, first.intersample),
                                    ("input names", r.input_names, first.input_names),

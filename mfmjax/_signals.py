@@ -48,6 +48,16 @@ def _concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
+def _same_step(a, b) -> float:
+    """How far the steps of two records may differ and be one: 1e-9 of it, or the rounding
+    of their time stamps over their lengths (epoch seconds near 1.7e9 carry 2.4e-7 s: records
+    of 300 and 101 samples at 0.1 s read dt 0.10000000031895462 and 0.1)."""
+    def rounding(r):
+        end = abs(float(r.t0)) + r.n_samples * float(r.dt)
+        return 4 * _EPS * end / max(r.n_samples - 1, 1)
+    return 1e-9 * float(a.dt) + rounding(a) + rounding(b)
+
+
 def _rounded_grid(t: np.ndarray, dt: float, rounding: float) -> float | None:
     """The step of a uniform grid whose stamps `t` were written to a decimal quantum
     q <= `QUANTUM_SHARE` dt: some line a + b k holds every stamp within q/2, i.e. the
@@ -486,6 +496,10 @@ class Signals(eqx.Module):
         )
         if len(names) != K:
             raise ValueError(f"Signals(): input_names needs {K} names, got {len(names)}")
+        twice = sorted({str(v) for v in names if list(map(str, names)).count(str(v)) > 1})
+        if twice:  # (estimate raised a LinAlgError from inside its stages)
+            raise ValueError(f"Signals(): input_names has {twice} more than once; name each "
+                             "input once (one column given twice as an input is one input)")
         host_y = [(output_name, np.asarray(y))] if _concrete(y) else []
         host_u = [(names[k], np.asarray(u)[:, k]) for k in range(K)] if _concrete(u) else []
         _refuse_nonfinite("Signals()", host_y + host_u)  # columns checked on the host
@@ -553,8 +567,10 @@ class Signals(eqx.Module):
         for i, r in enumerate(records[1:], 1):
             for attr in ("dt", "intersample", "smooth", "offset", "output_rule", "output_name",
                          "input_names"):
+                if attr == "dt" and abs(r.dt - first.dt) <= _same_step(r, first):
+                    continue  # the same step, to the time stamps' rounding
                 if getattr(r, attr) != getattr(first, attr):
-                    show = (lambda v: f"{float(v):g}") if attr == "dt" else repr  # noqa: E731
+                    show = (lambda v: f"{float(v):.15g}") if attr == "dt" else repr  # noqa: E731
                     raise ValueError(f"Signals.concatenate(): record {i} has {attr}="
                                      f"{show(getattr(r, attr))}, record 0 has "
                                      f"{show(getattr(first, attr))}; experiments must match")
@@ -565,8 +581,26 @@ class Signals(eqx.Module):
         for r in records:
             windows.append((t, t + (r.n_samples - 1) * r.dt))
             t += r.n_samples * r.dt
+        note = first.offset_note
+        if first.offset:
+            levels = [float(np.mean(np.asarray(r.y))) for r in records]
+            spread = max(float(np.std(np.asarray(r.y))) for r in records)
+            if max(levels) - min(levels) > spread:
+                warnings.warn(
+                    "Signals.concatenate(): the records' outputs sit at "
+                    f"{', '.join(f'{v:.4g}' for v in levels)}, further apart than any record's "
+                    f"own spread ({spread:.3g}), and one offset term serves them all: right "
+                    "only where the inputs' levels explain the difference (one equilibrium "
+                    "line); records at different operating points need their levels removed "
+                    "each (detrend(record, 'constant') or 'linear'), then joined with "
+                    "offset=False", stacklevel=_b.user_stacklevel())
+            if any(r.offset_note != note for r in records[1:]):  # (record 0's note said
+                # "the output sits at 50.1" of a record joined with one at 80)
+                note = (f"one offset term for the {len(records)} joined records (their own "
+                        "notes: " + "; ".join(f"record {i}: {r.offset_note or 'given'}"
+                                              for i, r in enumerate(records)) + ")")
         joined = replace_fields(first, y=jnp.concatenate([r.y for r in records]),
-                                u=jnp.concatenate([r.u for r in records]))
+                                u=jnp.concatenate([r.u for r in records]), offset_note=note)
         return joined, windows
 
     # -- derived quantities -------------------------------------------------------------------

@@ -346,9 +346,18 @@ def test_estimate_outputs_one_model_per_output():
         assert np.max(np.abs(got - want)) < 1e-2 * np.ptp(want)
     # what differs is said (a NaN row dropped by resample= shortens one output's grid)
     with pytest.raises(ValueError, match=r"estimate_outputs\(\): record 1 \('y': 895 samples "
-                                         r"from t0 = 0, dt = 0.05\) does not share record 0's "
-                                         r"inputs and sampling \('y': 900 samples from t0 = 0"):
+                                         r"from t0 = 0, dt = 0.05, inputs \['u1'\]\) does not "
+                                         r"share record 0's inputs and sampling \('y': 900 "
+                                         r"samples from t0 = 0"):
         mfmjax.estimate_outputs([s1, Signals(y2[:-5], u[:-5], dt=DT)], h=2.0)
+    # another input count is shown (both records read "900 samples from t0 = 0, dt = 0.05"),
+    # and an output of the list used as another record's input is named
+    two = Signals(y2, np.column_stack([u, np.asarray(s1.y)]), dt=DT, output_name="y2",
+                  input_names=["u1", "y"])
+    with pytest.raises(ValueError, match=r"inputs \['u1', 'y'\]\) does not share record 0's "
+                                         r".*inputs \['u1'\]; \['y'\] is an output of this "
+                                         r"list and an input of record 1"):
+        mfmjax.estimate_outputs([s1, two], h=2.0)
     # other rules or another start time (identify= windows are absolute times) were accepted
     for other_record, what in [(Signals(y2, u, dt=DT, intersample=["zoh"]), "intersample rules"),
                                (Signals(y2, u, dt=DT, t0=5.0, intersample=["foh"]),

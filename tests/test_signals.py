@@ -381,3 +381,49 @@ def test_csv_line_ends_of_every_system_read_the_same(tmp_path, end):
         if nan_at is not None:
             y[nan_at] = np.nan
         np.testing.assert_array_equal(cols["y"], y)
+
+
+def test_concatenate_says_when_one_offset_term_cannot_serve_records_at_other_levels():
+    """Records of one plant at output levels 50 and 80 (inputs alike), each with an offset
+    term, joined: one offset term cannot fit both, and estimate returned a static gain of 650
+    for 1, unsaid, under record 0's note "the output sits at 50.1". Warned now, the joined
+    note names every record's decision; records at one level join silently. Epoch-stamped
+    records at one step join (dt 0.10000000031895462 against 0.1 was refused, both printed
+    as 0.1); a step that differs is refused with its full digits."""
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((2, 400))
+    y = 0.5 * rng.standard_normal((2, 400))
+    at = [Signals(y[i] + lvl, u[i], dt=0.05, offset=True) for i, lvl in enumerate((50.0, 80.0))]
+    with pytest.warns(UserWarning, match=r"concatenate\(\): the records' outputs sit at 49.98, "
+                                         r"80.03, further apart than any record's own spread "
+                                         r"\(0.505\), and one offset term serves them all"):
+        joined, _ = Signals.concatenate(at)
+    assert joined.offset and joined.offset_note == at[0].offset_note  # both given: one note
+    auto = [Signals(y[i] + 50.0 + 0.1 * i, u[i], dt=0.05) for i in range(2)]
+    assert auto[0].offset and auto[0].offset_note != auto[1].offset_note
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the same level: nothing to say
+        joined, _ = Signals.concatenate(auto)
+    assert joined.offset_note.startswith("one offset term for the 2 joined records (their own "
+                                         f"notes: record 0: {auto[0].offset_note}; record 1: ")
+    epoch = [Signals(np.sin(np.arange(T)), np.cos(np.arange(T)),
+                     t=1.7e9 + 0.1 * np.arange(T), offset=False) for T in (300, 101)]
+    assert epoch[0].dt != epoch[1].dt and abs(epoch[0].dt - epoch[1].dt) < 1e-9
+    joined, windows = Signals.concatenate(epoch)
+    assert joined.n_samples == 401 and joined.dt == epoch[0].dt
+    other = Signals(np.zeros(50), np.zeros(50), dt=0.1000001, offset=False)
+    with pytest.raises(ValueError, match=r"record 1 has dt=0.1000001, record 0 has "
+                                         r"0.100000000318955; experiments must match"):
+        Signals.concatenate([epoch[0], other])
+
+
+def test_an_input_named_twice_is_refused():
+    """One column given twice as an input (`from_columns(inputs=["a", "a"])`) was accepted,
+    and `estimate` then raised numpy's LinAlgError from inside its stages."""
+    y, u = np.zeros(40), np.ones((40, 2))
+    for build in (lambda: Signals(y, u, dt=1.0, input_names=["a", "a"]),
+                  lambda: Signals.from_columns({"y": y, "a": u[:, 0]}, output="y",
+                                               inputs=["a", "a"], dt=1.0)):
+        with pytest.raises(ValueError, match=r"input_names has \['a'\] more than once; name "
+                                             "each input once"):
+            build()
