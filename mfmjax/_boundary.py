@@ -500,6 +500,10 @@ def check_refine(signals, *, score, vary, bounds, validate, observer_window, max
                 array(fn, f"bounds[{key!r}] {side}", b, ndim=(0, 1), fix="give finite bounds")
             if key == "h":
                 min_support(fn, val[0], signals.host_dt, "bounds['h'] lo")
+            if key == "delays" and np.any(np.asarray(val[0], dtype=np.float64) < 0):
+                raise ValueError(f"{fn}(): bounds['delays'] lo must be >= 0 (got "
+                                 f"{_show(val[0])}): a delay is a dead time; its box starts "
+                                 "at 0 at the lowest")
     window(fn, "validate", validate)
     if observer_window is not None:
         number(fn, "observer_window", observer_window, lo=0, lo_open=True)

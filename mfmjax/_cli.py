@@ -553,16 +553,20 @@ def _refine_report(sig, model, vary_delays: bool) -> dict:
         except ValueError:
             return float("nan")
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         vary = ("h", "N", "M") + (("delays",) if vary_delays else ())
         r = mfmjax.refine(sig, model, vary=vary)
+    said = [str(w.message) for w in caught if str(w.message).startswith("refine(): ")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
         # delays fitted here count in the std errors (as known they came out 0.43-0.52 of
         # the estimates' spread on a 10 dB record)
         oe = mfmjax.output_error(sig, r.model, delay_uncertainty=vary_delays)
     return {
         "model": oe.model, "settings": r.settings, "start_settings": r.start_settings,
-        "refine_result": r.result, "refine_steps": r.steps, "E_mfm": E(model),
+        "refine_result": r.result, "refine_steps": r.steps, "refine_warnings": said,
+        "refine_improved": r.improved, "E_mfm": E(model),
         # eq. 17 as the two before it (output error's own criterion, its fitted x0's squared
         # residuals, was printed under that name)
         "E_refined": E(r.model), "E_output_error": E(oe.model), "output_error_result": oe.result,
@@ -588,8 +592,11 @@ def _delay_std_json(errors):
 def _print_report(rep: dict) -> None:
     s = rep["settings"]
     delays = ",".join(f"{d:.4g}" for d in s["delays"]) if s["delays"] else "-"
-    print(f"\nrefined settings (BFGS on E: {rep['refine_result']}, {rep['refine_steps']} steps): "
+    print(f"\nrefined settings (BFGS on E: {rep['refine_result']}, {rep['refine_steps']} steps"
+          f"{'' if rep['refine_improved'] else ', no improvement: the start kept'}): "
           f"N={s['N']:.4g} M={s['M']:.4g} h={s['h']:.5g} delays={delays}")
+    for text in rep["refine_warnings"]:  # (they were silenced: a stall read "successful")
+        print(f"note: {text}")
     E = [f"{rep[k]:.6g}" if math.isfinite(rep[k]) else "undefined"
          for k in ("E_mfm", "E_refined", "E_output_error")]
     print(f"E (eq. 17) on the data fitted, the state observed over all of them: MFM {E[0]} -> "

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _boundary as _b
-from ._gram import TRACED_DELAYS
+from ._gram import MIN_VALID, TRACED_DELAYS
 from ._identify import identify_model
 from ._jit import device, jit
 from ._model import Model
@@ -126,11 +126,13 @@ class Refinement(eqx.Module):
     start: Model
     settings: dict
     start_settings: dict
-    path: np.ndarray  # score after each accepted BFGS step (first entry: the start)
+    path: np.ndarray  # score of the iterate after each BFGS step, line-search trials that
+    # were not accepted included (first entry: the start moved into the box)
     result: str  # optimistix result name ("successful", "max_steps_reached", ...)
     steps: int
     value: float  # the score (E or J_rel) of `model`, the model returned
     score: str = eqx.field(static=True)
+    start_value: float = math.nan  # the start's own score on these signals (inf: unusable)
 
     @property
     def converged(self) -> bool:
@@ -139,7 +141,8 @@ class Refinement(eqx.Module):
 
     @property
     def improved(self) -> bool:
-        return bool(self.path[-1] < self.path[0])
+        """The model returned scores below the start's own score (by more than 1e-9 of it)."""
+        return bool(self.value < self.start_value * (1 - IMPROVEMENT))
 
 
 def _value(x):
@@ -158,6 +161,9 @@ def _host_settings(x0: dict, box: dict, z) -> dict:
 
 
 EDGE = 0.02  # a start nearer its box's edge (share of the range) starts this far inside
+IMPROVEMENT = 1e-9  # a score below the start's by less than this share is no improvement (a
+# stalled BFGS "improved" 0.12445271758566176 to ...043)
+AT_BOUND = 1e-3  # a refined setting this near (share of its range) a box edge ended there
 
 
 def _logit(x, lo, hi):
@@ -209,7 +215,7 @@ class _Objective(eqx.Module):
 def refine(
     signals: Signals, start: Model, *, score: str = "E", vary=SETTINGS, bounds: dict | None = None,
     validate=None, observer_window=None, max_steps: int = 40, rtol: float = 1e-6,
-    atol: float = 1e-8, top: int = 3, _span: float = 0.0,
+    atol: float = 1e-8, top: int = 3, eta=None, _span: float = 0.0,
 ) -> Refinement:
     r"""Refine the modulating-function settings (and delays) of `start` by gradient descent.
 
@@ -228,7 +234,12 @@ def refine(
     that fails (solver error, non-finite score, or no improvement) returns the starting
     model, with the solver's code in `result`; where the start is not the model its settings
     give on these signals (identified on other data), that model instead, whose score
-    `value` is. (`_span`: internal, that shared size.)
+    `value` is, unless the start scores better there; score "E" never returns a model
+    scoring worse than the start (`start_value`). `eta`: the constraint of eq. (11) the
+    start was identified with (default: `identify`'s); a start identified with another eta
+    is re-identified with this one along the path. A refined setting that ends at an edge
+    of its box that is not a physical limit (h's, N's and M's upper, h's lower, a delay's
+    upper) is warned: the optimum may lie beyond it. (`_span`: internal, that shared size.)
     """
     from ._boundary import check_refine
     from ._search import SearchResult
@@ -255,7 +266,8 @@ def refine(
                 warnings.simplefilter("always")  # pointing into this file)
                 runs.append((refine(signals, s, score=score, vary=vary, bounds=bounds,
                                     validate=validate, observer_window=observer_window,
-                                    max_steps=max_steps, rtol=rtol, atol=atol, _span=span),
+                                    max_steps=max_steps, rtol=rtol, atol=atol, eta=eta,
+                                    _span=span),
                              caught))
         best, caught = min(runs, key=lambda r: r[0].value)  # the returned model's score
         for w in caught:
@@ -292,13 +304,27 @@ def refine(
     v0, length, ob = validation_window(signals, validate, observer_window, start.structure.n,
                                        "refine")
     p = start.structure.n_params + int(signals.offset)
+    eta = default_eta(p, signals.offset) if eta is None else _b.array(
+        "refine", "eta", eta, ndim=1, fix="give the constraint vector the start was identified "
+        "with, one entry per parameter")
+    if np.shape(eta) != (p,) or not np.any(np.asarray(eta) != 0):
+        raise ValueError(f"refine(): eta must have one entry per parameter ({p}), not all zero "
+                         f"(got {np.asarray(eta).tolist()})")
+    span = _kernel_span(box, vary, start)
+    first = kernel_length(span, signals.host_dt) - 1
+    need = max(MIN_VALID, 2 * p)
+    if signals.n_samples - first < need:  # (the box's far end scored inf, silently unusable)
+        raise ValueError(f"refine(): the bounds let h plus the delays reach {span:g}, which "
+                         f"leaves the record ({signals.duration:g} time units) "
+                         f"{max(signals.n_samples - first, 0)} valid samples, need {need}; "
+                         "lower the upper bound of bounds['h'] or bounds['delays']")
     padded, bound, end, valid = _padded_window(signals.unlabelled(), v0, length)
     objective = _Objective(
         signals=padded, lengths=(np.int32(ob), end, valid),
         x0={k: device(v, np.float64) for k, v in x0.items()},
         lo={k: device(box[k][0], np.float64) for k in vary},
         hi={k: device(box[k][1], np.float64) for k in vary},
-        eta=device(default_eta(p, signals.offset)),
+        eta=device(np.asarray(eta, dtype=np.float64)),
         start=device(v0, np.int32), structure=start.structure, vary=tuple(vary),
         kernel=kernel_bucket(kernel_length(max(_kernel_span(box, vary, start), _span), dt)),
         window=bound, key={"E": "E", "J": "J_rel"}[score],
@@ -331,7 +357,8 @@ def refine(
 
     def at(s):  # the model the objective scored at settings s: identified on these signals
         sig = eqx.tree_at(lambda q: q.delays, signals, device(np.reshape(s["delays"], K)))
-        return identify(sig, start.structure, ModulatingFunction(s["N"], s["M"], s["h"]))
+        return identify(sig, start.structure, ModulatingFunction(s["N"], s["M"], s["h"]),
+                        eta=eta)
 
     def own(model) -> float:  # the objective's score of `model` itself (the path's first point
         # is that of the start moved into the box, and of its settings' round trip through
@@ -345,32 +372,61 @@ def refine(
             val, status = float(obs.E), int(model.status) | int(obs.status)
         return val if status == 0 and math.isfinite(val) and val > 0 else math.inf
 
-    failed = not math.isfinite(path[0]) or best_f >= path[0] or code not in USABLE
+    gain = math.log1p(-IMPROVEMENT)  # (log space: a share of the score)
+    failed = not math.isfinite(path[0]) or best_f >= path[0] + gain or code not in USABLE
     if not failed and any(_moved(x0[k], *box[k]) for k in vary):  # no better than the start?
-        failed = best_f >= math.log(own(at(s_start)))
+        failed = best_f >= math.log(own(at(s_start))) + gain
+    start_value = own(start)  # the start itself, as given (its own eta, its own data)
+    if not failed and score == "E" and best_f >= math.log(start_value) + gain:
+        failed = True  # (a start of another eta scored 1.2426; the path's best 1.2440)
 
     if failed:  # the start, when it is the model its settings give on these signals; else
         # that model, whose score `value` is (a start identified on other data was returned
-        # beside the score of another model: 0.00997 against its own 3.73)
+        # beside the score of another model: 0.00997 against its own 3.73), unless the
+        # start itself scores better there
         fresh = at(s_start)  # a search's candidate equals identify's to 1e-8 (tests)
         x, y = (np.concatenate([np.ravel(v) for v in jax.tree.leaves((m.a, m.b, m.offset))])
                 for m in (fresh, start))
         same = bool(np.all(np.abs(x - y) <= 1e-8 * np.max(np.abs(y), initial=1e-300)))
-        model, what = (start, "the start") if same else (
+        better = score == "E" and start_value <= own(fresh)
+        model, what = (start, "the start") if same or better else (
             fresh, "the start's settings identified on these signals (the start differs: "
-                   "identified on other data or another window)")
+                   "identified on other data, another window or another eta)")
     if code != "successful":
         warnings.warn(f"refine(): not converged ({code} after {steps} steps); returning "
                       f"{what if failed else 'the best point of the path'} (see "
                       "Refinement.converged)", stacklevel=2)
-    elif failed and model is not start:  # converged without improving: still say it
-        warnings.warn(f"refine(): no improvement on the start; returning {what}", stacklevel=2)
+    elif failed:  # converged without improving: still say it (a BFGS that rejected every
+        # step from h on a sample multiple, where E jumps, returned "successful", unsaid)
+        warnings.warn(f"refine(): no improvement on the start (BFGS stopped at it, or scored "
+                      f"every step it tried worse); returning {what}", stacklevel=2)
     if failed:
         return Refinement(model, start, s_start, s_start, np.exp(np.asarray(path)), code, steps,
-                          own(model), score)
+                          own(model), score, start_value)
     s = {k: _plain(v) for k, v in _host_settings(x0, box, best_z).items()}
+    _edges("refine", s, box, vary, start.structure.n)
     return Refinement(at(s), start, s, s_start, np.exp(np.asarray(path)), code, steps,
-                      math.exp(best_f), score)
+                      math.exp(best_f), score, start_value)
+
+
+def _edges(fn: str, s: dict, box: dict, vary, n: int) -> None:
+    """Warn of refined settings that ended at an edge of their box that is not a physical
+    limit (a delay of 0 and N = n or M = n are: nothing lies beyond them)."""
+    ends = []
+    for key in vary:
+        lo, hi = (np.broadcast_to(np.asarray(b, dtype=np.float64), np.shape(s[key]))
+                  for b in box[key])
+        v, tol = np.asarray(s[key], dtype=np.float64), AT_BOUND * (hi - lo)
+        for i in np.ndindex(v.shape):
+            name = key if v.ndim == 0 else f"{key}[{i[0]}]"
+            physical_lo = key == "delays" and lo[i] <= 0 or key in ("N", "M") and lo[i] <= n
+            if v[i] >= hi[i] - tol[i]:
+                ends.append(f"{name} = {float(v[i]):.6g} at its upper bound {float(hi[i]):.6g}")
+            elif v[i] <= lo[i] + tol[i] and not physical_lo:
+                ends.append(f"{name} = {float(v[i]):.6g} at its lower bound {float(lo[i]):.6g}")
+    if ends:
+        warnings.warn(f"{fn}(): {'; '.join(ends)}: the optimum may lie beyond the box; widen "
+                      "it with bounds={...} (or accept the edge)", stacklevel=3)
 
 
 def _box(signals: Signals, start: Model, bounds) -> dict:

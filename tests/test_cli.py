@@ -707,10 +707,17 @@ def test_refine_report_says_unstable_undetermined_and_fitted_delays(capsys):
            "output_error_unstable": True, "undetermined": ["b_20"],
            "parameters": {"a_0": {"value": 1.79, "std_error": 0.04},
                           "b_20": {"value": 0.3, "std_error": float("inf")}},
-           "delay_std_errors": [0.033, None]}
+           "delay_std_errors": [0.033, None], "refine_improved": True, "refine_warnings": []}
     _print_report(rep)
     out = capsys.readouterr().out
+    assert "no improvement" not in out and "note: refine()" not in out
     assert "WARNING: the output-error model is UNSTABLE" in out
     assert "WARNING: NOT DETERMINED by the data (infinite std error, the value is arbitrary): b_20" in out
     assert re.search(r"delay 1 +4\.363000e-01 +3\.300e-02", out) and "delay 2" not in out
     assert "the delays were fitted by refine; the standard errors include their uncertainty" in out
+    # refine's own warnings were silenced too: a BFGS stalled at the start read "successful"
+    _print_report({**rep, "refine_improved": False,
+                   "refine_warnings": ["refine(): no improvement on the start (...)"]})
+    out = capsys.readouterr().out
+    assert ("(BFGS on E: successful, 7 steps, no improvement: the start kept)" in out
+            and "note: refine(): no improvement on the start (...)" in out), out

@@ -333,3 +333,83 @@ def test_refine_of_a_windowed_search_says_it_identifies_on_all_data():
     # runs' pointed into _refine.py)
     assert any("not converged" in str(w.message) for w in said)
     assert {w.filename for w in said} == {__file__}, [(w.filename, w.lineno) for w in said]
+
+
+def test_refine_never_returns_a_model_worse_than_its_start(noisy):
+    """A start identified with its own eta (eq. 11) was re-identified with the default one
+    along the path: an audit's start scored E = 1.2426, the path began at 1.2440 and refine
+    returned 1.24399 as `improved`. With `eta=` the path starts at the start's own E; without
+    it, score "E" compares the path with the start's own E and returns the start where the
+    path is no better (`start_value`, `improved` against it)."""
+    _, sig, _ = noisy
+    eta = [0.0, 0.0, 1.0, 0.0, 0.0]  # a_2 = 1
+    start = mfmjax.identify(sig, ST, ModulatingFunction(3, 4, 200.0), eta=eta)
+    E0 = float(mfmjax.performance_index(start, sig))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (max_steps_reached)
+        r = mfmjax.refine(sig, start, vary=("h",), max_steps=4, eta=eta)
+    assert r.start_value == pytest.approx(E0, rel=1e-9)
+    assert r.path[0] == pytest.approx(E0, rel=1e-9)  # the start's own eta along the path
+    assert r.value <= E0 and float(mfmjax.performance_index(r.model, sig)) <= E0 * (1 + 1e-9)
+    default = mfmjax.identify(sig, ST, ModulatingFunction(3, 4, 200.0))
+    E_default = float(mfmjax.performance_index(default, sig))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = mfmjax.refine(sig, start, vary=("h",), max_steps=1)  # (no eta: the default's path)
+    assert r.path[0] == pytest.approx(E_default, rel=1e-9)
+    assert r.value <= E0 * (1 + 1e-12) and r.improved == (r.value < E0 * (1 - 1e-9))
+    if r.value >= E0:  # the start itself, with its own score, not a worse model
+        assert r.model is start
+    with pytest.raises(ValueError, match=r"refine\(\): eta must have one entry per parameter "
+                                         r"\(5\), not all zero"):
+        mfmjax.refine(sig, start, vary=("h",), eta=[1.0, 1.0])
+
+
+def test_refine_bounds_that_cannot_be_met_are_refused_and_edges_are_said(noisy):
+    """A delay box below 0 and an h box whose top leaves the record no valid samples were
+    accepted (the iterates there scored inf: a silently unusable box); refused now. A refined
+    setting at an edge of its box that is not a physical limit is warned (h = 8.08, the
+    default top, came back unsaid)."""
+    from mfmjax._refine import _edges
+
+    _, sig, _ = noisy
+    start = mfmjax.identify(sig, ST, ModulatingFunction(3, 4, 200.0))
+    with pytest.raises(ValueError, match=r"bounds\['delays'\] lo must be >= 0 \(got -1.0\)"):
+        mfmjax.refine(sig, start, vary=("delays",), bounds={"delays": (-1.0, 5.0)})
+    with pytest.raises(ValueError, match=r"the bounds let h plus the delays reach 4000, which "
+                                         r"leaves the record \(3997.5 time units\) 0 valid "
+                                         r"samples, need 10; lower the upper bound"):
+        mfmjax.refine(sig, start, vary=("h",), bounds={"h": (100.0, 4000.0)})
+    box = {"h": (50.0, 800.0), "N": (2.0, 12.0), "M": (2.0, 12.0),
+           "delays": (np.zeros(2), np.array([10.0, 10.0]))}
+    with pytest.warns(UserWarning, match=r"refine\(\): h = 799.9 at its upper bound 800; "
+                                         r"delays\[1\] = 10 at its upper bound 10: the optimum "
+                                         r"may lie beyond the box"):
+        _edges("refine", {"h": 799.9, "N": 2.0, "M": 6.0, "delays": [0.0, 10.0]}, box,
+               ("h", "N", "M", "delays"), 2)
+    with warnings.catch_warnings():  # N = n and a delay of 0 are physical limits: nothing said
+        warnings.simplefilter("error")
+        _edges("refine", {"h": 400.0, "N": 2.0, "M": 6.0, "delays": [0.0, 3.0]}, box,
+               ("h", "N", "M", "delays"), 2)
+    with pytest.warns(UserWarning, match=r"h = 50.1 at its lower bound 50"):
+        _edges("refine", {"h": 50.1}, box, ("h",), 2)
+
+
+def test_refine_that_does_not_move_says_so():
+    """From h on a sample multiple (E jumps there), BFGS rejected every step and stopped
+    "successful" after 30 of them; the start came back with `improved` True (a rounding-level
+    difference) and nothing said (an audit's record: 2 / (s^2 + 3 s + 2), 20 dB). Now the
+    start, `improved` False, and a warning."""
+    from mfmjax.datasets import simulated_experiment
+
+    plant = Model.from_coefficients([2.0, 3.0, 1.0], [[2.0]])
+    s = simulated_experiment(plant, dt=0.05, n_samples=600, seed=0)
+    y = np.asarray(s.y)
+    y = y + np.std(y) / 10 * np.random.default_rng(1).standard_normal(600)
+    sig = Signals(y, np.asarray(s.u), dt=0.05, intersample=s.intersample, offset=False)
+    start = mfmjax.identify(sig, Structure(2, (0,)), ModulatingFunction(3, 4, 2.0))
+    with pytest.warns(UserWarning, match=r"refine\(\): no improvement on the start \(BFGS "
+                                         r"stopped at it, or scored every step it tried worse\); "
+                                         r"returning the start"):
+        r = mfmjax.refine(sig, start, vary=("h", "N", "M"))
+    assert r.model is start and not r.improved and r.value == r.start_value
