@@ -48,6 +48,9 @@ def cache_dir(path: str | os.PathLike | None = None) -> str:
 
 
 ENTRY = re.compile(r"-[0-9a-f]{64}-cache$")  # JAX's entries and `mfmjax-exe-<key>-cache`
+# `atomic_write`'s temporary file of a stored executable whose writer was killed
+LEFTOVER = re.compile(r"^\.mfmjax-exe-[0-9a-f]{64}-cache\..*\.tmp$")
+LEFTOVER_AGE_S = 3600.0  # older than this: no writer is still writing it
 
 
 def _prune(path: str, max_size_bytes: int) -> None:
@@ -55,7 +58,16 @@ def _prune(path: str, max_size_bytes: int) -> None:
     until the directory holds at most `max_size_bytes`. Another process may prune the same
     folder at the same time: a file gone meanwhile is skipped (it raised before)."""
     entries = []
+    import time
+
     for entry in os.scandir(path):
+        if LEFTOVER.match(entry.name):  # (never counted nor removed: 0.5 MB each)
+            try:
+                if time.time() - entry.stat().st_mtime > LEFTOVER_AGE_S:
+                    os.remove(entry.path)
+            except OSError:
+                pass
+            continue
         if not ENTRY.search(entry.name):
             continue
         atime = os.path.join(path, entry.name[: -len("-cache")] + "-atime")
@@ -115,14 +127,25 @@ def enable_compile_cache(
             f"{max_size_bytes!r})"
         )
     directory = cache_dir(path)
+    where = (f"set by ${_ENV_DIR}: set it to another folder or unset it"
+             if os.environ.get(_ENV_DIR) else "pass another path")
     try:
         os.makedirs(directory, exist_ok=True)
     except OSError as err:
         raise ValueError(
             f"enable_compile_cache(): cannot create the cache directory {directory!r} "
-            f"({err.strerror}); pass another path or set {_OPT_OUT}=1"
+            f"({err.strerror}); {where}, or set {_OPT_OUT}=1"
         ) from None
-    _prune(directory, max_size_bytes)
+    if not os.access(directory, os.W_OK):  # (every program then compiled from cold, unsaid,
+        # and JAX warned once per program)
+        import warnings
+
+        warnings.warn(f"enable_compile_cache(): the cache directory {directory!r} is not "
+                      f"writable: programs stored there load, new ones are compiled and not "
+                      f"stored; {where} to store them", stacklevel=2)
+        warnings.filterwarnings("ignore", message="Error writing persistent compilation cache")
+    else:
+        _prune(directory, max_size_bytes)
     from jax.experimental.compilation_cache import compilation_cache as cc
 
     previous = jax.config.jax_compilation_cache_dir

@@ -431,6 +431,42 @@ def test_prune_keeps_the_newest(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes-cache", "other.txt"]
 
 
+def test_cache_folder_problems_are_said_once_with_a_fix_that_works(tmp_path, monkeypatch):
+    """A cache folder $JAX_COMPILATION_CACHE_DIR names that cannot be created: the advice
+    was "pass another path", which that variable overrides. A folder that cannot be written
+    was taken silently (every program compiled from cold, and JAX warned once per program):
+    one warning now, and loading from it still works. A stored executable's temporary file
+    left by a killed writer was never pruned: removed when older than an hour."""
+    session = os.environ["JAX_COMPILATION_CACHE_DIR"]
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(blocker))
+    try:
+        with pytest.raises(ValueError, match=r"cannot create the cache directory .*a-file' .*; "
+                                             r"set by \$JAX_COMPILATION_CACHE_DIR: set it to "
+                                             r"another folder or unset it, or set "
+                                             r"MFMJAX_NO_COMPILE_CACHE=1"):
+            mfmjax.enable_compile_cache(tmp_path / "mine")
+        monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR")
+        real = os.access
+        monkeypatch.setattr(_cache.os, "access",  # a read-only folder (this runs as root)
+                            lambda p, mode: False if mode == os.W_OK else real(p, mode))
+        with pytest.warns(UserWarning, match=r"enable_compile_cache\(\): the cache directory "
+                                             r".*ro' is not writable: programs stored there "
+                                             r"load, new ones are compiled and not stored; pass "
+                                             r"another path to store them"):
+            assert mfmjax.enable_compile_cache(tmp_path / "ro") == str(tmp_path / "ro")
+    finally:
+        monkeypatch.undo()
+        mfmjax.enable_compile_cache(session)
+    old, fresh = (tmp_path / f".mfmjax-exe-{c * 64}-cache.x1y2.tmp" for c in "ab")
+    for f in (old, fresh):
+        f.write_bytes(b"z" * 10)
+    os.utime(old, (1000.0, 1000.0))
+    _cache._prune(str(tmp_path), 1 << 30)
+    assert not old.exists() and fresh.exists()  # (a writer may still be writing the fresh one)
+
+
 def test_cli_uses_the_cache_unless_told_not_to(tmp_path):
     t = np.arange(600) * 0.01
     u = np.sin(0.9 * t) + 0.5 * np.cos(2.3 * t)
