@@ -718,7 +718,7 @@ def stubbed(tiny, monkeypatch):
             raise ValueError("forehearth(): experiment must be 1 or 2")
         z = np.zeros(3)
         return {"t": z, "y": z, "u": np.zeros((3, 2)), "pull": z, "delay": z,
-                "names": ["a", "b", "c"]}
+                "names": ["a", "b", "c"], "intersample": ("foh", "zoh")}  # (as the real one)
 
     monkeypatch.setattr(mfmjax, "identify", identify)
     monkeypatch.setattr(mfmjax, "search", search)
