@@ -516,3 +516,22 @@ def test_search_on_several_identify_windows_warns_that_validation_crosses_them()
         warnings.simplefilter("error")
         mfmjax.search(joined, identify=list(windows), validate=windows[1], n=(2,), N=3, M=3,
                       h=3.0)
+
+
+def test_repeated_grid_values_are_one_candidate_and_a_bad_delay_is_named():
+    """h=(2, 2), N=(3, 3) or a delay listed twice made the table list one candidate several
+    times (ranks 1-4 the same row), each computed again; n and m were merged already. A
+    negative delay got "delays must be >= 0 and shorter than the record", naming neither the
+    input nor the value."""
+    y, u, dt = _level_record(T=1200)
+    sig = Signals(y, u, dt=dt, offset=False)
+    once = mfmjax.search(sig, n=(1, 2), N=(3,), M=(3,), h=(3.0,), delays=[[0.0, 0.1]])
+    twice = mfmjax.search(sig, n=(1, 1, 2), N=(3, 3.0), M=(3,), h=(3.0, 3.0),
+                          delays=[[0.0, 0.1, 0.0]])
+    assert len(twice) == len(once) == 6  # (n, m): (1, 0), (2, 0), (2, 1); two delays
+    np.testing.assert_array_equal(twice.columns["E"], once.columns["E"])
+    assert twice.table(6) == once.table(6)
+    with pytest.raises(ValueError, match=r"search\(\): delays\[0\]\[1\] must be >= 0 and shorter "
+                                         r"than the record \(59.95 time units; got "
+                                         r"delays\[0\]\[1\]=-0.5\)"):
+        mfmjax.search(sig, n=(1,), N=3, M=3, h=3.0, delays=[[0.0, -0.5]])

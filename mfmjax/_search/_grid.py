@@ -71,9 +71,16 @@ def grid_values(x, name: str) -> list:
     return vals
 
 
+def distinct(vals: list) -> list:
+    """The grid's values once each, in their first order (h=(2, 2) listed every candidate
+    twice, each computed again: n and m were merged already)."""
+    return list(dict.fromkeys(vals))
+
+
 def delay_grids(delays) -> list[list[float]]:
     """The per-input delay grids of a `delays=` argument as lists of floats."""
-    return [[float(d) for d in grid_values(dk, f"delays[{k}]")] for k, dk in enumerate(delays)]
+    return [distinct([float(d) for d in grid_values(dk, f"delays[{k}]")])
+            for k, dk in enumerate(delays)]
 
 
 def structures(n_grid, m_grid, K: int) -> list[tuple[int, tuple[int, ...]]]:
@@ -191,9 +198,9 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
         raise ValueError(f"search(): score {score!r} needs simulate=True (or use score='J')")
     K = signals.n_inputs
     n_grid = grid_values(n, "n")
-    N_grid = [float(v) for v in grid_values(N, "N")]
-    M_grid = [float(v) for v in grid_values(M, "M")]
-    h_grid = [float(v) for v in grid_values(h, "h")]
+    N_grid = distinct([float(v) for v in grid_values(N, "N")])
+    M_grid = distinct([float(v) for v in grid_values(M, "M")])
+    h_grid = distinct([float(v) for v in grid_values(h, "h")])
     if m is not None:
         m = [grid_values(mk, f"m[{k}]") for k, mk in enumerate(m)]
         if len(m) != K:
@@ -207,8 +214,12 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     for name, vals in (("N", N_grid), ("M", M_grid), ("h", h_grid)):
         if any(not math.isfinite(v) or v <= 0 for v in vals):
             raise ValueError(f"search(): {name} values must be finite and > 0 (got {vals})")
-    if any(d < 0 or d >= signals.duration for dk in delays for d in dk):
-        raise ValueError("search(): delays must be >= 0 and shorter than the record")
+    for k, dk in enumerate(delays):
+        for j, d in enumerate(dk):
+            if d < 0 or d >= signals.duration:
+                raise ValueError(f"search(): delays[{k}][{j}] must be >= 0 and shorter than "
+                                 f"the record ({signals.duration:g} time units; got "
+                                 f"delays[{k}][{j}]={d:g})")
     structs = structures(n_grid, m, K)
     if not structs:
         raise ValueError("search(): no structure in the grid (check n and m)")

@@ -44,7 +44,8 @@ def search(
       `delays`: per input, the delays to try. Candidates with N < n or M < n are skipped.
     - `score`: ranking key, one of `"E"` (eq. 17 on the validation window), `"J"` (scale-free
       equation error J_rel), `"fit"` (NRMSE %), `"aic"`, `"bic"` ($N_v \ln(E/T_v) + 2k$ and
-      $+ k \ln N_v$, k = number of free parameters). Flagged candidates rank after the others;
+      $+ k \ln N_v$, $N_v$ validation samples, $T_v = N_v\,dt$, k = number of free
+      parameters, the offset's counted, delays not). Flagged candidates rank after the others;
       ties (for E: differences below 1e-12 of $\int (y - \bar y)^2$; for J: below $\sqrt{p\,\epsilon}$,
       the rounding noise of $\theta^T G \theta$; both matter on noise-free data) go to the
       candidate with fewer parameters.
