@@ -373,10 +373,18 @@ def refine(
         return val if status == 0 and math.isfinite(val) and val > 0 else math.inf
 
     gain = math.log1p(-IMPROVEMENT)  # (log space: a share of the score)
+    fresh = at(s_start)  # a search's candidate equals identify's to 1e-8 (tests)
+    x, y = (np.concatenate([np.ravel(v) for v in jax.tree.leaves((m.a, m.b, m.offset))])
+            for m in (fresh, start))
+    same = bool(np.all(np.abs(x - y) <= 1e-8 * np.max(np.abs(y), initial=1e-300)))
+    moved = any(_moved(x0[k], *box[k]) for k in vary)
+    # the start itself, as given (its own eta, its own data); the path's first point where
+    # that is the start (no observation program to compile: 0.6 s of a first call)
+    start_value = own(start) if moved or not same else (
+        math.exp(path[0]) if math.isfinite(path[0]) else math.inf)
     failed = not math.isfinite(path[0]) or best_f >= path[0] + gain or code not in USABLE
-    if not failed and any(_moved(x0[k], *box[k]) for k in vary):  # no better than the start?
-        failed = best_f >= math.log(own(at(s_start))) + gain
-    start_value = own(start)  # the start itself, as given (its own eta, its own data)
+    if not failed and moved:  # no better than the start?
+        failed = best_f >= math.log(own(fresh)) + gain
     if not failed and score == "E" and best_f >= math.log(start_value) + gain:
         failed = True  # (a start of another eta scored 1.2426; the path's best 1.2440)
 
@@ -384,10 +392,6 @@ def refine(
         # that model, whose score `value` is (a start identified on other data was returned
         # beside the score of another model: 0.00997 against its own 3.73), unless the
         # start itself scores better there
-        fresh = at(s_start)  # a search's candidate equals identify's to 1e-8 (tests)
-        x, y = (np.concatenate([np.ravel(v) for v in jax.tree.leaves((m.a, m.b, m.offset))])
-                for m in (fresh, start))
-        same = bool(np.all(np.abs(x - y) <= 1e-8 * np.max(np.abs(y), initial=1e-300)))
         better = score == "E" and start_value <= own(fresh)
         model, what = (start, "the start") if same or better else (
             fresh, "the start's settings identified on these signals (the start differs: "
