@@ -651,7 +651,10 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
                         f", SRIVC structures within {HOLDOUT_TIE:.0%} of the best decided by "
                         "their BIC over all estimation data")
                      + f"; the MFM search's BIC on the estimation data would pick "
-                     f"n={by_bic[0]} m={by_bic[1]}")
+                     f"n={by_bic[0]} m={by_bic[1]}"
+                     + ("; no candidate was stable (an integrator, or an unstable plant), so "
+                        "those with a pole at Re >= 0 and no other flag were ranked"
+                        if sel.unstable_ranked else ""))
     if len(sel0.estimation) > 1:
         # several experiments: the stages after MFM simulate one record; keep MFM
         out = []

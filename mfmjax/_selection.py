@@ -25,6 +25,7 @@ from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import identification_segments
 from ._search._result import ranking
 from ._signals import Signals
+from ._status import Status
 
 OBSERVER_FRACTION = 0.2  # initial-state observer over this share of a hold-out window
 
@@ -42,6 +43,10 @@ class HoldoutSearch(NamedTuple):
     refit: SearchResult
     folds: tuple
     estimation: tuple
+    # no candidate was stable: those flagged only unstable were ranked by their hold-out E
+    # (an integrator's or an unstable plant's record: every candidate was inf, and the first
+    # of the grid, n = 1, won by its fewer parameters at a fit of 23 %)
+    unstable_ranked: bool = False
 
 
 FOLDS = 2  # hold-out blocks: the last `holdout` share, and (FOLDS = 2) the first one too
@@ -126,9 +131,18 @@ def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
     out = []
     for r, refit in enumerate(refits):
         per_fold = [f[r] for f in fitted]
-        E = np.mean([np.where(x.columns["status"] == 0, x.columns["E"], np.inf)
-                     for x in per_fold], axis=0)
-        E = np.where(np.isfinite(E), E, np.inf)
+
+        def mean_E(usable):
+            E = np.mean([np.where(usable(x.columns["status"]), x.columns["E"], np.inf)
+                         for x in per_fold], axis=0)
+            return np.where(np.isfinite(E), E, np.inf)
+
+        E = mean_E(lambda st: st == 0)
+        unstable = not np.isfinite(E).any()
+        if unstable:  # the block's E of a model whose only flag is a pole with Re >= 0 is
+            # finite and means what it says: rank those
+            E = mean_E(lambda st: (st & ~int(Status.UNSTABLE)) == 0)
+            unstable = bool(np.isfinite(E).any())
         fit = np.mean([x.columns["fit"] for x in per_fold], axis=0)
         c = per_fold[-1].columns
         rank = ranking(E, c["n"] + np.sum(c["m"] + 1, axis=1), ~np.isfinite(E), None)
@@ -139,7 +153,7 @@ def holdout_search(signals: Signals, *, estimation=None, holdout: float = 1 / 3,
                     fit_holdout=np.where(np.isfinite(E), fit, np.nan))
         out.append(HoldoutSearch(tuple(replace_fields(x, rank=rank) for x in per_fold), E,
                                  replace_fields(refit, rank=rank, columns=held), fold_windows,
-                                 est))
+                                 est, unstable))
     return out if records is not None else out[0]
 
 
