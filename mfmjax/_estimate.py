@@ -35,7 +35,7 @@ from ._quadrature import record_bucket
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import CHUNK_SETTINGS, delay_edge_notes, delay_grids, grid_values, structures
 from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
-from ._signals import Signals, dependent_inputs, offset_undecided, output_start
+from ._signals import Signals, dependent_inputs, nearly_dependent_inputs, offset_undecided, output_start
 from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc, srivc_many
 from ._status import Status, describe
 
@@ -290,6 +290,17 @@ def estimate(
             status = np.int32(int(o.model.status) | Status.ILL_CONDITIONED)
             outs[r] = replace_fields(o, model=replace_fields(o.model, status=status),
                                      notes=o.notes + (text,))
+            warnings.warn(f"estimate(){which}: {text}", stacklevel=2)
+            continue
+        nearly, ratio = nearly_dependent_inputs(rec, o.model.delays)
+        if nearly:  # not singular, but the held-back data are as collinear as the rest
+            which = "" if single else f" (record {r})"
+            text = (f"the inputs {list(nearly)} are nearly collinear (the least singular value "
+                    f"of their unit columns is {ratio:.2g} of the largest): the data hardly tell "
+                    "their paths apart, so each input's gain and numerator can be far off "
+                    "while their sum fits (check their standard errors); excite the inputs "
+                    "separately, or identify their sum")
+            outs[r] = replace_fields(o, notes=o.notes + (text,))
             warnings.warn(f"estimate(){which}: {text}", stacklevel=2)
     for r, (o, (notes, serious, _)) in enumerate(zip(outs, checked)):
         # the grid's choice (the chosen candidate's; `_delays_fitted` may have moved it)
@@ -904,10 +915,28 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
         if method != "mfm" and records[r].offset:
             notes += (f"SRIVC / output error ran on data with their {SHIFTS[shift]} removed; "
                       "the offset term is mapped back to the original levels",)
+        notes += _flat_holdout(folds, r, est_sigs[r])
         out.append(Estimate(model, start, sels[r].refit, fit, oe, tuple(names), std, cov,
                             converged, seeds[r][1], method, texts[r], held, notes,
                             key(b)))
     return out
+
+
+FLAT_HOLDOUT = 0.1  # a held-back block whose output's std is below this share of the
+# estimation data's says little: its fit % divides by that small spread
+
+
+def _flat_holdout(folds: list, r: int, est) -> tuple:
+    """A note where every held-back block's output barely moves (a single step's settled
+    tail: a model fitting the step at 99.8 % read "chosen: srivc 0.1" there, unsaid)."""
+    spread = float(np.std(np.asarray(est.y)))
+    held = [float(np.std(f[3][r])) for f in folds]
+    if not spread > 0 or max(held) >= FLAT_HOLDOUT * spread:
+        return ()
+    return (f"the held-back block(s) barely move the output (std {max(held):.3g} against "
+            f"{spread:.3g} over the estimation data): their fit % says little about the model "
+            "(its denominator is that small spread), and they decided the structure by E alone; "
+            "hold back data where the output moves (identify=, holdout=)",)
 
 
 def _holdout_variants(records: list, sels: list, stages: dict, search: dict):
