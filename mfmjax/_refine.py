@@ -380,8 +380,11 @@ def refine(
     moved = any(_moved(x0[k], *box[k]) for k in vary)
     # the start itself, as given (its own eta, its own data); the path's first point where
     # that is the start (no observation program to compile: 0.6 s of a first call)
-    start_value = own(start) if moved or not same else (
-        math.exp(path[0]) if math.isfinite(path[0]) else math.inf)
+    # (score "J": a start's own J_rel is of the data it was identified on: its settings' J_rel
+    # on these signals stands for it)
+    here = math.exp(path[0]) if math.isfinite(path[0]) else math.inf
+    start_value = (here if not moved else own(fresh)) if score == "J" else (
+        own(start) if moved or not same else here)
     failed = not math.isfinite(path[0]) or best_f >= path[0] + gain or code not in USABLE
     if not failed and moved:  # no better than the start?
         failed = best_f >= math.log(own(fresh)) + gain
@@ -408,14 +411,15 @@ def refine(
         return Refinement(model, start, s_start, s_start, np.exp(np.asarray(path)), code, steps,
                           own(model), score, start_value)
     s = {k: _plain(v) for k, v in _host_settings(x0, box, best_z).items()}
-    _edges("refine", s, box, vary, start.structure.n)
+    _edges("refine", s, box, vary, start.structure.n, set(bounds or {}))
     return Refinement(at(s), start, s, s_start, np.exp(np.asarray(path)), code, steps,
                       math.exp(best_f), score, start_value)
 
 
-def _edges(fn: str, s: dict, box: dict, vary, n: int) -> None:
+def _edges(fn: str, s: dict, box: dict, vary, n: int, given=frozenset()) -> None:
     """Warn of refined settings that ended at an edge of their box that is not a physical
-    limit (a delay of 0 and N = n or M = n are: nothing lies beyond them)."""
+    limit (a delay of 0 and N = n or M = n are: nothing lies beyond them); an edge of the
+    default box (keys not in `given`) is named as refine's own."""
     ends = []
     for key in vary:
         lo, hi = (np.broadcast_to(np.asarray(b, dtype=np.float64), np.shape(s[key]))
@@ -423,11 +427,14 @@ def _edges(fn: str, s: dict, box: dict, vary, n: int) -> None:
         v, tol = np.asarray(s[key], dtype=np.float64), AT_BOUND * (hi - lo)
         for i in np.ndindex(v.shape):
             name = key if v.ndim == 0 else f"{key}[{i[0]}]"
+            own = "" if key in given else " (refine's default box)"
             physical_lo = key == "delays" and lo[i] <= 0 or key in ("N", "M") and lo[i] <= n
             if v[i] >= hi[i] - tol[i]:
-                ends.append(f"{name} = {float(v[i]):.6g} at its upper bound {float(hi[i]):.6g}")
+                ends.append(f"{name} = {float(v[i]):.6g} at its upper bound "
+                            f"{float(hi[i]):.6g}{own}")
             elif v[i] <= lo[i] + tol[i] and not physical_lo:
-                ends.append(f"{name} = {float(v[i]):.6g} at its lower bound {float(lo[i]):.6g}")
+                ends.append(f"{name} = {float(v[i]):.6g} at its lower bound "
+                            f"{float(lo[i]):.6g}{own}")
     if ends:
         warnings.warn(f"{fn}(): {'; '.join(ends)}: the optimum may lie beyond the box; widen "
                       "it with bounds={...} (or accept the edge)", stacklevel=3)

@@ -62,8 +62,9 @@ def _rounded_grid(t: np.ndarray, dt: float, rounding: float) -> float | None:
     """The step of a uniform grid whose stamps `t` were written to a decimal quantum
     q <= `QUANTUM_SHARE` dt: some line a + b k holds every stamp within q/2, i.e. the
     narrowest strip around the stamps (a convex function of its slope, minimised by golden
-    section) is at most q wide (q itself: a grid half a quantum off the written digits, 80 Hz
-    written in ms, rounds its ties both ways). Returns the
+    section) is at most q wide (q itself where the step is no whole number of quanta: a grid
+    half a quantum off the written digits, 80 Hz in ms, rounds its ties both ways; half of q
+    where it is one to 1 % of q: every stamp then rounds alike). Returns the
     least-squares slope (3.3e-6 relative error from the end points at 30 Hz in ms over 3000
     samples, 4.4e-9 from the fit); None for any other stamps."""
     q = decimal_quantum(t)
@@ -91,7 +92,13 @@ def _rounded_grid(t: np.ndarray, dt: float, rounding: float) -> float | None:
             s2 = lo + g * (hi - lo)
             f2 = np.ptp(r - s2 * k)
     width = float(min(f1, f2))
-    return slope if width <= q * (1 + 1e-6) + 2 * rounding else None
+    # a width of q itself only where ties can occur: a step that is no whole number of
+    # quanta (80 Hz in ms: 12.5); where it is one to 1 % of a quantum, every stamp rounds
+    # alike (width 0) and a width of q is a real slip (300 stamps of 10 s in whole seconds,
+    # 150 of them 1 s late: slope 10.005; one of them: 9.99994)
+    ties = abs(slope / q - round(slope / q)) > 0.01
+    limit = q * (1 + 1e-6) if ties else 0.5 * q
+    return slope if width <= limit + 2 * rounding else None
 
 
 def _per_input(value, K: int, name: str, default, cast):
@@ -145,14 +152,14 @@ def dependent_candidates(signals, delays) -> tuple[np.ndarray, tuple[str, ...]]:
     return np.asarray([bool(f) for f in found])[inverse.reshape(-1)], names
 
 
-def _input_gram(signals):
-    """The inputs' K x K Gram (centred with the offset term) and column norms; None for
-    traced data or fewer than two inputs."""
+def _input_gram(signals, centre: bool = False):
+    """The inputs' K x K Gram (centred with the offset term, or `centre`) and column norms;
+    None for traced data or fewer than two inputs."""
     u = signals.u
     if not _concrete(u) or u.ndim != 2 or u.shape[-1] < 2:
         return None
     u = np.asarray(u, dtype=np.float64)
-    if signals.offset:
+    if signals.offset or centre:
         u = u - np.mean(u, axis=0)
     C = u.T @ u
     return C, np.sqrt(np.diagonal(C))
@@ -163,7 +170,8 @@ def nearly_dependent_inputs(signals, delays=None) -> tuple[tuple[str, ...], floa
     `NEARLY_RTOL` of the largest (the least ratio found), as `dependent_inputs` judges them:
     two inputs 1 % apart gave gains of 6.4 and -3.5 for 2 and 1, status ok, nothing said."""
     delays = signals.delays if delays is None else delays
-    gram = _input_gram(signals)
+    gram = _input_gram(signals, centre=True)  # (a level both share is no dependence: it
+    # flagged independent +-1 inputs about 20 without the offset term)
     if gram is None or not _concrete(delays):
         return (), 1.0
     return _dependent(signals, gram, delays, NEARLY_RTOL, ratio=True)
@@ -599,15 +607,18 @@ class Signals(eqx.Module):
         if first.offset:
             levels = [float(np.mean(np.asarray(r.y))) for r in records]
             spread = max(float(np.std(np.asarray(r.y))) for r in records)
-            if max(levels) - min(levels) > spread:
+            u_levels = np.asarray([np.mean(np.asarray(r.u), axis=0) for r in records])
+            u_spread = np.max([np.std(np.asarray(r.u), axis=0) for r in records], axis=0)
+            alike = bool(np.all(np.ptp(u_levels, axis=0) <= u_spread)) if first.n_inputs \
+                else True  # the inputs' levels cannot explain the output's move
+            if max(levels) - min(levels) > spread and alike:
                 warnings.warn(
                     "Signals.concatenate(): the records' outputs sit at "
                     f"{', '.join(f'{v:.4g}' for v in levels)}, further apart than any record's "
-                    f"own spread ({spread:.3g}), and one offset term serves them all: right "
-                    "only where the inputs' levels explain the difference (one equilibrium "
-                    "line); records at different operating points need their levels removed "
-                    "each (detrend(record, 'constant') or 'linear'), then joined with "
-                    "offset=False", stacklevel=_b.user_stacklevel())
+                    f"own spread ({spread:.3g}), while their inputs sit at the same levels, and "
+                    "one offset term serves them all: records at different operating points "
+                    "need their levels removed each (detrend(record, 'constant') or 'linear'), "
+                    "then joined with offset=False", stacklevel=_b.user_stacklevel())
             if any(r.offset_note != note for r in records[1:]):  # (record 0's note said
                 # "the output sits at 50.1" of a record joined with one at 80)
                 note = (f"one offset term for the {len(records)} joined records (their own "

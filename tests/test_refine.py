@@ -363,6 +363,14 @@ def test_refine_never_returns_a_model_worse_than_its_start(noisy):
     with pytest.raises(ValueError, match=r"refine\(\): eta must have one entry per parameter "
                                          r"\(5\), not all zero"):
         mfmjax.refine(sig, start, vary=("h",), eta=[1.0, 1.0])
+    # score "J": a start's own J_rel is of its own data; its settings' J_rel on these signals
+    # (the path's first point) stands for it (a start of other data read improved=False for
+    # a J_rel that fell from 0.125 to 0.036)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = mfmjax.refine(sig, start, score="J", vary=("h",), max_steps=3)
+    assert r.start_value == pytest.approx(r.path[0], rel=1e-12)
+    assert r.improved == (r.value < r.path[0] * (1 - 1e-9))
 
 
 def test_refine_bounds_that_cannot_be_met_are_refused_and_edges_are_said(noisy):
@@ -386,7 +394,10 @@ def test_refine_bounds_that_cannot_be_met_are_refused_and_edges_are_said(noisy):
                                          r"delays\[1\] = 10 at its upper bound 10: the optimum "
                                          r"may lie beyond the box"):
         _edges("refine", {"h": 799.9, "N": 2.0, "M": 6.0, "delays": [0.0, 10.0]}, box,
-               ("h", "N", "M", "delays"), 2)
+               ("h", "N", "M", "delays"), 2, {"h", "delays"})
+    with pytest.warns(UserWarning, match=r"h = 799.9 at its upper bound 800 \(refine's default "
+                                         r"box\): the optimum"):  # (not a box the user gave)
+        _edges("refine", {"h": 799.9}, box, ("h",), 2)
     with warnings.catch_warnings():  # N = n and a delay of 0 are physical limits: nothing said
         warnings.simplefilter("error")
         _edges("refine", {"h": 400.0, "N": 2.0, "M": 6.0, "delays": [0.0, 3.0]}, box,

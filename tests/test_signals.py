@@ -396,7 +396,8 @@ def test_concatenate_says_when_one_offset_term_cannot_serve_records_at_other_lev
     at = [Signals(y[i] + lvl, u[i], dt=0.05, offset=True) for i, lvl in enumerate((50.0, 80.0))]
     with pytest.warns(UserWarning, match=r"concatenate\(\): the records' outputs sit at 49.98, "
                                          r"80.03, further apart than any record's own spread "
-                                         r"\(0.505\), and one offset term serves them all"):
+                                         r"\(0.505\), while their inputs sit at the same "
+                                         r"levels, and one offset term serves them all"):
         joined, _ = Signals.concatenate(at)
     assert joined.offset and joined.offset_note == at[0].offset_note  # both given: one note
     auto = [Signals(y[i] + 50.0 + 0.1 * i, u[i], dt=0.05) for i in range(2)]
@@ -411,10 +412,39 @@ def test_concatenate_says_when_one_offset_term_cannot_serve_records_at_other_lev
     assert epoch[0].dt != epoch[1].dt and abs(epoch[0].dt - epoch[1].dt) < 1e-9
     joined, windows = Signals.concatenate(epoch)
     assert joined.n_samples == 401 and joined.dt == epoch[0].dt
+    # records on one equilibrium line (the input's level moves the output's): no warning
+    line = [Signals(2.0 * lvl + 3.0 + y[i], lvl + u[i], dt=0.05, offset=True)
+            for i, lvl in enumerate((0.0, 5.0))]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Signals.concatenate(line)
     other = Signals(np.zeros(50), np.zeros(50), dt=0.1000001, offset=False)
     with pytest.raises(ValueError, match=r"record 1 has dt=0.1000001, record 0 has "
                                          r"0.100000000318955; experiments must match"):
         Signals.concatenate([epoch[0], other])
+
+
+def test_a_one_quantum_slip_of_whole_quanta_steps_is_not_a_rounded_grid():
+    """Stamps of a 10 s step written in whole seconds round alike (the step is a whole
+    number of quanta): a strip of a whole quantum there is a real slip, not rounding (150 of
+    300 stamps 1 s late were accepted as uniform, dt 10.005). Refused; a step of no whole
+    number of quanta (80 Hz in ms) rounds its ties both ways and stays accepted
+    (test_prepare.py)."""
+    t = 10.0 * np.arange(300)
+    for bad in (np.where(np.arange(300) >= 150, t + 1.0, t), np.where(np.arange(300) == 7,
+                                                                      t + 1.0, t)):
+        with pytest.raises(ValueError, match="not uniformly sampled"):
+            Signals(y=np.zeros(300), t=bad)
+    from mfmjax._signals import nearly_dependent_inputs
+
+    # independent +-1 inputs about a level of 20, no offset term: the shared level is no
+    # collinearity (they were called nearly collinear, 0.036)
+    rng = np.random.default_rng(2)
+    u = 20.0 + np.sign(rng.standard_normal((400, 2)))
+    assert nearly_dependent_inputs(Signals(np.zeros(400), u, dt=1.0, offset=False)) == ((), 1.0)
+    close = np.column_stack([u[:, 0], u[:, 0] + 0.01 * rng.standard_normal(400)])
+    names, ratio = nearly_dependent_inputs(Signals(np.zeros(400), close, dt=1.0, offset=False))
+    assert names == ("u1", "u2") and ratio < 0.05
 
 
 def test_an_input_named_twice_is_refused():
