@@ -79,11 +79,13 @@ class Model(eqx.Module):
         from ._boundary import eager_only, number, require_x64
 
         require_x64("Model.from_coefficients")  # device_put narrowed to float32 without it
-        eager_only("Model.from_coefficients", a, b, offset, delays)
         if isinstance(b, (str, bytes)) or not hasattr(b, "__iter__"):
             raise TypeError(f"Model.from_coefficients(): b must be a sequence of per-input "
                             f"coefficient lists, got {type(b).__name__}; for one input write "
                             "b=[[b_0, b_1, ...]]")
+        b = b if hasattr(b, "shape") else list(b)  # once: a generator was used up by the
+        # checks (a model of no inputs); an array stays one (a traced b is refused below)
+        eager_only("Model.from_coefficients", a, b, offset, delays)
         for name, value in (("a", a), *((f"b[{k}]", bk) for k, bk in enumerate(b)),
                             ("delays", delays)):  # True was read as 1.0
             if value is not None and any(isinstance(v, (bool, np.bool_)) for v in
@@ -122,9 +124,7 @@ class Model(eqx.Module):
             raise ValueError(
                 f"Model.from_coefficients(): delays needs {K} finite values >= 0 (got {delays})"
             )
-        if input_names is not None and len(input_names) != K:
-            raise ValueError(f"Model.from_coefficients(): input_names needs one name per input of "
-                             f"b ({K}; got {list(input_names)})")
+        _check_names("Model.from_coefficients", output_name, input_names, K)
         if isinstance(intersample, str):
             intersample = (intersample,) * K
         intersample = (tuple(str(v) if isinstance(v, str) else v for v in intersample)
@@ -133,6 +133,14 @@ class Model(eqx.Module):
             raise ValueError(
                 f"Model.from_coefficients(): intersample needs {K} entries of 'zoh'/'foh'"
             )
+        with np.errstate(over="ignore"):
+            scaled = np.concatenate([a / an] + [bk / an for bk in bs]
+                                    + ([np.array([offset / an])] if offset is not None else []))
+        if not np.all(np.isfinite(scaled)):  # (a = [inf, 1], status ok, before)
+            raise ValueError(f"Model.from_coefficients(): a_n = {an:g} is so small that the "
+                             "coefficients divided by it (a_n = 1 is the normal form) overflow "
+                             "float64; rescale the equation (multiply a, b and offset by one "
+                             "factor) or drop a_n if it is a rounding-level zero")
         theta = np.concatenate([a] + bs + ([np.array([offset])] if offset is not None else []))
         arrays = jax.device_put(dict(  # NumPy on the device: no eager programs
             a=a / an, b=tuple(bk / an for bk in bs),
@@ -160,6 +168,7 @@ class Model(eqx.Module):
 
     def labelled(self, output_name: str, input_names: Sequence[str]) -> Model:
         """The same model with these labels (the inverse of `unlabelled` after a jitted call)."""
+        _check_names("Model.labelled", output_name, input_names, self.n_inputs)
         return replace_fields(self, output_name=output_name, input_names=tuple(input_names))
 
     def summary(self) -> str:
@@ -270,3 +279,21 @@ def finite_or_none(x):
 
 
 __all__ = ["Model", "Status"]
+
+
+def _check_names(fn: str, output_name, input_names, K: int) -> None:
+    """A string output name and one string per input (a name list of another length was
+    accepted by `labelled` and the file it saved was refused by `load_model`; a string
+    "pq" became two names)."""
+    if not isinstance(output_name, str):
+        raise TypeError(f"{fn}(): output_name must be a string, got "
+                        f"{type(output_name).__name__}")
+    if input_names is None:
+        return
+    if isinstance(input_names, (str, bytes)):
+        raise TypeError(f"{fn}(): input_names must be a list of strings, one per input, not "
+                        f"the string {input_names!r}; write input_names=[{input_names!r}]")
+    names = list(input_names)
+    if len(names) != K or not all(isinstance(v, str) for v in names):
+        raise ValueError(f"{fn}(): input_names needs one name per input of b ({K}; got "
+                         f"{names})")

@@ -67,6 +67,31 @@ def test_model_from_coefficients_refuses(b, names, match):
     assert mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], np.array([[1.0, 0.5]])).m == (1,)
 
 
+def test_model_labels_and_coefficients_are_checked_where_they_are_given():
+    """A model audit (2026-11-28): b as a generator was used up by the checks and gave a
+    model of no inputs; `labelled` took any names (a 2-input model named ['only'] plotted,
+    saved, and its file was refused by load_model), and a string became one name per
+    character; an a_n so small that a / a_n overflowed gave a = [inf, 1] with status ok."""
+    two = mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], (r for r in [[1.0, 0.5], [0.8]]))
+    assert two.n_inputs == 2 and two.m == (1, 0)
+    for names, err, match in ((["only"], ValueError, r"input_names needs one name per input "
+                                                     r"of b \(2; got \['only'\]\)"),
+                              (["a", "b", "c"], ValueError, r"input_names needs one name"),
+                              ("pq", TypeError, r"input_names must be a list of strings, one "
+                                                r"per input, not the string 'pq'"),
+                              ([1, 2], ValueError, r"input_names needs one name")):
+        with pytest.raises(err, match=r"Model.labelled\(\): " + match):
+            two.labelled("z", names)
+    with pytest.raises(TypeError, match=r"Model.labelled\(\): output_name must be a string"):
+        two.labelled(5, ["a", "b"])
+    assert two.labelled("z", ["a", "b"]).input_names == ("a", "b")
+    with pytest.raises(TypeError, match=r"from_coefficients\(\): input_names must be a list"):
+        mfmjax.Model.from_coefficients([2.0, 3.0, 1.0], [[1.0], [2.0]], input_names="ab")
+    with pytest.raises(ValueError, match=r"from_coefficients\(\): a_n = 1e-300 is so small "
+                                         r"that the coefficients divided by it .* overflow"):
+        mfmjax.Model.from_coefficients([1e10, 1e-300], [[1.0]])
+
+
 @pytest.mark.parametrize("a,b,delays,name", [  # a bool was read as 1.0 or 0.0
     ([True, 3.0, 1.0], [[1.0]], None, "a"),
     ([2.0, 3.0, 1.0], [[1.0], [True, 0.5]], None, r"b\[1\]"),
