@@ -234,7 +234,7 @@ def test_exports(noisy, tmp_path):
         (dict(h=(-1.0,)), "h values must be finite and > 0"),
         (dict(h=(1.0,), score="xyz"), "unknown score"),
         (dict(h=(1.0,), m=[(0,)]), "m needs one list"),
-        (dict(h=(1.0,), delays=[(0.0,), (-1.0,)]), "delays must be >= 0"),
+        (dict(h=(1.0,), delays=[(0.0,), (-1.0,)]), r"delays\[1\]\[0\] must be >= 0"),
         (dict(h=(1.0,), validate=(0.0, 100.0)), "validate window"),
         (dict(h=(1.0,), chunk_size=0), "chunk_size must be an integer >= 1"),
     ],
