@@ -62,9 +62,12 @@ def paper_tables(models: list[dict], end: float | None) -> str:
              f"{'N':>3} {'M':>3} {'h [s]':>6}"]
     for r in models:
         stop = r["sim_end"] if r["sim_end"] is not None else end
+        # a model accepted in the last closed interval has predicted nothing yet: "(next)"
+        # (it read 3000-3000, a span of zero shown as a real one)
+        shown = "(next)" if stop is None or stop <= r["sim_start"] else f"{stop:.0f}"
         lines.append(f"{r['model']:>8} {r['operating_point']:>9} "
                      f"{r['ident_window'][0]:>7.0f}-{r['ident_window'][1]:<8.0f} "
-                     f"{r['sim_start']:>6.0f}-{stop:<7.0f} {r['N']:>3} {r['M']:>3} {r['h']:>6.0f}")
+                     f"{r['sim_start']:>6.0f}-{shown:<7} {r['N']:>3} {r['M']:>3} {r['h']:>6.0f}")
     n_max = max((r["n"] for r in models), default=2)
     m_max = [max((r["m"][k] for r in models), default=0) for k in range(2)]
     head = [f"a_{i}" for i in range(n_max + 1)]
@@ -261,9 +264,11 @@ def demo(out: str = "mfmjax-demo", horizon: float | None = None, mode: str = "im
         print(paper_tables(ident.models, end))
         delays = delay_table(ident.models, data, guess=r["delay"])
         print("\n" + format_delay_table(delays))
-        shown = (f"{mse:.4f} degC^2" if math.isfinite(mse) else  # say why (it did not)
-                 f"undefined ({ident.why_no_prediction()}; a longer --horizon lets the plant "
-                 "reach an operating point)")
+        why = None if math.isfinite(mse) else (  # say why (it did not), and what helps:
+            f"{ident.why_no_prediction()}; a longer --horizon lets "  # (a model accepted in
+            + ("its first model predict" if ident.models else  # the last interval was told
+               "the plant reach an operating point"))  # to wait for an operating point)
+        shown = f"{mse:.4f} degC^2" if why is None else f"undefined ({why})"
         print(f"mean square prediction error: {shown} (paper: {PAPER_MSE[ex]})\n")
         fig_in = os.path.join(out, f"experiment{ex}_inputs.png")
         fig_pred = os.path.join(out, f"experiment{ex}_prediction.png")
@@ -285,10 +290,9 @@ def demo(out: str = "mfmjax-demo", horizon: float | None = None, mode: str = "im
             "figures": [fig_in, fig_pred], "simulate_s": r["simulate_s"],
             "online_s": r["online_s"], "update_ms_median": float(np.median(upd)),
         })
-        if not math.isfinite(mse):  # strict JSON has no NaN: say why the value is missing
-            results["experiments"][-1]["mse_note"] = (
-                "null: no prediction yet (the first model is identified after n_start "
-                "intervals and predicts from the interval after it); use a longer horizon")
+        if why is not None:  # strict JSON has no NaN: say why the value is missing, as
+            # printed (it blamed n_start where no operating point had been detected)
+            results["experiments"][-1]["mse_note"] = f"null: {why}"
     path = os.path.join(out, "results.json")
     from ._persist import atomic_write, json_safe
 

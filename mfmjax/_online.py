@@ -1581,7 +1581,8 @@ def model_table(models, end=None) -> str:
         lines.append(
             f"{r['model']:>3} {r['operating_point']:>4} "
             f"{r['ident_window'][0]:>6.0f}-{r['ident_window'][1]:<6.0f} "
-            f"{r['sim_start']:>6.0f}-{'' if sim_end is None else f'{sim_end:.0f}':<6} "
+            f"{r['sim_start']:>6.0f}-"  # "(next)": accepted, predicting nothing yet
+            f"{'' if sim_end is None else '(next)' if sim_end <= r['sim_start'] else f'{sim_end:.0f}':<6} "
             f"{r['N']:>3} {r['M']:>3} {r['h']:>6.4g} {r['n']:>2} "
             f"{','.join(map(str, r['m'])):>5} {e_cur:>10} {r['E_reident']:>10.4g}  {params}"
         )

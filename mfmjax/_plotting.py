@@ -66,7 +66,8 @@ def plot_online(series: dict, models: list[dict], path, *, title: str = "", ylab
     for k, (time, label) in enumerate(sorted(ops.items())):
         ax.axvline(time, color="k", ls=":", lw=1.0, label="operating point" if k == 0 else None)
         ax.text(time, 0.90, f" {label}", transform=ax.get_xaxis_transform(), fontsize=8,
-                ha="left", va="top", fontweight="bold")
+                ha="left", va="top", fontweight="bold", zorder=5,  # above the data lines (p1
+                bbox=dict(facecolor="white", alpha=0.8, lw=0, pad=1))  # was drawn under them)
     ax.plot(t, y, lw=1.1, color="#1f3b73", label="measured")
     if "model_number" in series and len(t):
         idx, yp = broken_at_switches(y_pred, series["model_number"])

@@ -217,3 +217,20 @@ def test_improved_mode_records_start_where_their_predictions_start():
     for rec in predicted:
         assert t[np.argmax(num == rec["model"])] == rec["sim_start"], rec
         assert rec["sim_end"] is None or rec["sim_end"] > rec["sim_start"]
+
+
+def test_a_model_that_has_not_predicted_yet_shows_next_in_the_tables():
+    """A model accepted in the last closed interval read "3000-3000" in the demo's and the
+    on-line tables, a span of zero shown as a real one; "(next)" now. A model in force whose
+    end is not known keeps an open span."""
+    from mfmjax._demo import paper_tables
+    from mfmjax._online import model_table
+
+    rec = {"model": 1, "operating_point": "p1", "ident_window": (2000.0, 3000.0),
+           "sim_start": 3000.0, "sim_end": None, "N": 3, "M": 4, "h": 50.0, "n": 2,
+           "m": [1, 0], "a": [1e-4, 0.02, 1.0], "b": [[1e-5, 2e-3], [3e-5]], "offset": 0.1,
+           "E_current": None, "E_reident": 2.5}
+    assert "3000-(next)" in paper_tables([rec], 3000.0)
+    assert "3000-(next)" in model_table([rec], end=3000.0)
+    assert "3000-3250" in paper_tables([rec], 3250.0) and "3000-3250" in model_table([rec], 3250.0)
+    assert "3000-      " in model_table([rec])  # in force, its end unknown
