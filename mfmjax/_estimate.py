@@ -663,8 +663,8 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
                         "their BIC over all estimation data")
                      + f"; the MFM search's BIC on the estimation data would pick "
                      f"n={by_bic[0]} m={by_bic[1]}"
-                     + ("; no candidate was stable (an integrator, or an unstable plant), so "
-                        "those with a pole at Re >= 0 and no other flag were ranked"
+                     + ("; no candidate was free of flags (an integrator, or an unstable "
+                        "plant), so those whose only flag is a pole at Re >= 0 were ranked"
                         if sel.unstable_ranked else ""))
     if len(sel0.estimation) > 1:
         # several experiments: the stages after MFM simulate one record; keep MFM
@@ -935,7 +935,7 @@ def _flat_holdout(folds: list, r: int, est) -> tuple:
         return ()
     return (f"the held-back block(s) barely move the output (std {max(held):.3g} against "
             f"{spread:.3g} over the estimation data): their fit % says little about the model "
-            "(its denominator is that small spread), and they decided the structure by E alone; "
+            "(its denominator is that small spread), and the structure was chosen on them; "
             "hold back data where the output moves (identify=, holdout=)",)
 
 

@@ -124,7 +124,7 @@ class Model(eqx.Module):
             raise ValueError(
                 f"Model.from_coefficients(): delays needs {K} finite values >= 0 (got {delays})"
             )
-        _check_names("Model.from_coefficients", output_name, input_names, K)
+        input_names = _check_names("Model.from_coefficients", output_name, input_names, K)
         if isinstance(intersample, str):
             intersample = (intersample,) * K
         intersample = (tuple(str(v) if isinstance(v, str) else v for v in intersample)
@@ -168,8 +168,11 @@ class Model(eqx.Module):
 
     def labelled(self, output_name: str, input_names: Sequence[str]) -> Model:
         """The same model with these labels (the inverse of `unlabelled` after a jitted call)."""
-        _check_names("Model.labelled", output_name, input_names, self.n_inputs)
-        return replace_fields(self, output_name=output_name, input_names=tuple(input_names))
+        names = _check_names("Model.labelled", output_name, input_names, self.n_inputs)
+        if names is None:
+            raise TypeError("Model.labelled(): input_names must be a list of strings, one per "
+                            "input")
+        return replace_fields(self, output_name=output_name, input_names=names)
 
     def summary(self) -> str:
         """A readable table of the parameters and fit diagnostics (concrete models only)."""
@@ -281,19 +284,23 @@ def finite_or_none(x):
 __all__ = ["Model", "Status"]
 
 
-def _check_names(fn: str, output_name, input_names, K: int) -> None:
-    """A string output name and one string per input (a name list of another length was
-    accepted by `labelled` and the file it saved was refused by `load_model`; a string
-    "pq" became two names)."""
+def _check_names(fn: str, output_name, input_names, K: int) -> tuple | None:
+    """The input names as a tuple of strings, checked: a string output name and one string
+    per input (a name list of another length was accepted by `labelled` and the file it
+    saved was refused by `load_model`; a string "pq" became two names); read once (a
+    generator)."""
     if not isinstance(output_name, str):
         raise TypeError(f"{fn}(): output_name must be a string, got "
                         f"{type(output_name).__name__}")
     if input_names is None:
-        return
+        return None
     if isinstance(input_names, (str, bytes)):
         raise TypeError(f"{fn}(): input_names must be a list of strings, one per input, not "
                         f"the string {input_names!r}; write input_names=[{input_names!r}]")
-    names = list(input_names)
-    if len(names) != K or not all(isinstance(v, str) for v in names):
-        raise ValueError(f"{fn}(): input_names needs one name per input of b ({K}; got "
-                         f"{names})")
+    names = tuple(input_names)
+    if len(names) != K:
+        raise ValueError(f"{fn}(): input_names needs one name per input ({K}; got "
+                         f"{list(names)})")
+    if not all(isinstance(v, str) for v in names):
+        raise TypeError(f"{fn}(): input_names must be strings (got {list(names)})")
+    return names

@@ -43,7 +43,7 @@ class HoldoutSearch(NamedTuple):
     refit: SearchResult
     folds: tuple
     estimation: tuple
-    # no candidate was stable: those flagged only unstable were ranked by their hold-out E
+    # no candidate was free of flags: those flagged only unstable were ranked by their hold-out E
     # (an integrator's or an unstable plant's record: every candidate was inf, and the first
     # of the grid, n = 1, won by its fewer parameters at a fit of 23 %)
     unstable_ranked: bool = False

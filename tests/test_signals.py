@@ -424,17 +424,17 @@ def test_concatenate_says_when_one_offset_term_cannot_serve_records_at_other_lev
         Signals.concatenate([epoch[0], other])
 
 
-def test_a_one_quantum_slip_of_whole_quanta_steps_is_not_a_rounded_grid():
-    """Stamps of a 10 s step written in whole seconds round alike (the step is a whole
-    number of quanta): a strip of a whole quantum there is a real slip, not rounding (150 of
-    300 stamps 1 s late were accepted as uniform, dt 10.005). Refused; a step of no whole
-    number of quanta (80 Hz in ms) rounds its ties both ways and stays accepted
-    (test_prepare.py)."""
-    t = 10.0 * np.arange(300)
-    for bad in (np.where(np.arange(300) >= 150, t + 1.0, t), np.where(np.arange(300) == 7,
-                                                                      t + 1.0, t)):
-        with pytest.raises(ValueError, match="not uniformly sampled"):
-            Signals(y=np.zeros(300), t=bad)
+def test_long_rounded_grids_and_names_as_strings():
+    """A 99.99 Hz logger writing ms (its step 0.0100010 s, within 1 % of 10 quanta, so its
+    stamps slip one quantum over the record) is a rounded grid (a rule refusing whole-quantum
+    slips of whole-quanta steps refused it); `Signals` keeps its input names as strings (a
+    record named 1, 2 made `estimate` fail in `Model.labelled`)."""
+    t = np.round(np.arange(1000) / 99.99, 3)
+    sig = Signals(y=np.zeros(1000), t=t)
+    # the stamps fix the step to their quantum over the record, q / (T - 1)
+    assert abs(sig.dt - 1 / 99.99) <= 1e-3 / 999
+    assert Signals(np.zeros(50), np.ones((50, 2)), dt=1.0, input_names=[1, 2]).input_names \
+        == ("1", "2")
     from mfmjax._signals import nearly_dependent_inputs
 
     # independent +-1 inputs about a level of 20, no offset term: the shared level is no
