@@ -13,6 +13,7 @@ Output error and the Cramer-Rao bound live in `_output_error` and `_cramer_rao`.
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 
@@ -378,16 +379,17 @@ def refine(
             for m in (fresh, start))
     same = bool(np.all(np.abs(x - y) <= 1e-8 * np.max(np.abs(y), initial=1e-300)))
     moved = any(_moved(x0[k], *box[k]) for k in vary)
+    own_fresh = functools.cache(lambda: own(fresh))  # one observation, where it is needed
     # the start itself, as given (its own eta, its own data); the path's first point where
     # that is the start (no observation program to compile: 0.6 s of a first call)
     # (score "J": a start's own J_rel is of the data it was identified on: its settings' J_rel
     # on these signals stands for it)
     here = math.exp(path[0]) if math.isfinite(path[0]) else math.inf
-    start_value = (here if not moved else own(fresh)) if score == "J" else (
+    start_value = (here if not moved else own_fresh()) if score == "J" else (
         own(start) if moved or not same else here)
     failed = not math.isfinite(path[0]) or best_f >= path[0] + gain or code not in USABLE
     if not failed and moved:  # no better than the start?
-        failed = best_f >= math.log(own(fresh)) + gain
+        failed = best_f >= math.log(own_fresh()) + gain
     if not failed and score == "E" and best_f >= math.log(start_value) + gain:
         failed = True  # (a start of another eta scored 1.2426; the path's best 1.2440)
 
@@ -395,7 +397,7 @@ def refine(
         # that model, whose score `value` is (a start identified on other data was returned
         # beside the score of another model: 0.00997 against its own 3.73), unless the
         # start itself scores better there
-        better = score == "E" and start_value <= own(fresh)
+        better = score == "E" and start_value <= own_fresh()
         model, what = (start, "the start") if same or better else (
             fresh, "the start's settings identified on these signals (the start differs: "
                    "identified on other data, another window or another eta)")
