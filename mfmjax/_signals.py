@@ -955,6 +955,8 @@ def _csv_column(path, name: str, cells: list, linenos: list, first: int) -> np.n
         if c in MISSING:
             continue
         try:
+            if "_" in c:  # Python's float() reads "1_00" as 100: no export writes that
+                raise ValueError(c)
             out[i] = float(c)
         except ValueError:
             bad.append(i)
@@ -990,6 +992,9 @@ def _csv_column(path, name: str, cells: list, linenos: list, first: int) -> np.n
                 "it with pandas.read_csv(path, thousands=',') (1,000 is 1000)" +
                 ("" if "." in cell else " or decimal=',' (1,000 is 1.0), whichever the "
                  "export used,") + " and Signals.from_dataframe")
+    elif "_" in cell and _is_number(cell):  # "1_00": Python's digit grouping, not a CSV's
+        hint = ("'_' inside a number: Python would read it as digit grouping (1_00 as 100), a "
+                "CSV export does not write it; remove the '_' or fix the export")
     elif _DECIMAL_COMMA.match(cell):  # "1,5" (tab-separated, or quoted in a comma file)
         hint = ("a decimal comma? mfmjax reads '.' as the decimal point: re-export the file, "
                 "or read it with pandas.read_csv(path, sep=..., decimal=',') and "
@@ -1047,7 +1052,7 @@ def _parse_fast(body: str, sep: str | None, n_cols: int):
     import io
     import sys
 
-    if sep == "," and '"' in body:
+    if (sep == "," and '"' in body) or "_" in body:  # Python reads "1_00" as 100: refused
         return None
     try:
         if "pandas" in sys.modules or len(body) > _PANDAS_MIN_CHARS:

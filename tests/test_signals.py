@@ -276,6 +276,10 @@ def test_dataframe_labels_are_matched_as_text_and_duplicates_refused():
      "'1,000'.*thousands separator or a decimal comma\\?.*thousands=','.*or decimal=','"),
     ('t,y,u\n0,"12,345.5",2.5\n1,"1,250.0",2.7\n',
      "'12,345.5'.*a thousands separator\\? .*thousands=','\\) \\(1,000 is 1000\\) and "),
+    # Python's float() reads "1_00" as 100 (digit grouping): it was read so, silently, on the
+    # fast path and the careful one (an empty cell elsewhere)
+    ("t,y,u\n0,1_00,2.5\n1,2,2.7\n", "'1_00'.*'_' inside a number.*1_00 as 100"),
+    ("t,y,u\n0,1_00,2.5\n1,,2.7\n", "'1_00'.*'_' inside a number"),
 ])
 def test_decimal_commas_are_named(tmp_path, text, match):
     """A European export (';' and decimal commas) said "unknown column 'y'; available:
