@@ -40,9 +40,16 @@ def _top_level() -> bool:
     return _trace_ctx is not None and _trace_ctx.is_top_level()
 
 
+def _on_cpu() -> bool:
+    """True when programs compile for XLA:CPU, the backend `COMPILER_OPTIONS` and stored
+    executables are for: on a GPU, XLA refused the CPU option ("No such compile option:
+    'xla_cpu_use_fusion_emitters'") and every program failed; there XLA's defaults apply."""
+    return jax.default_backend() == "cpu"
+
+
 def jit(fun=None, *, options=None, **jitkwargs):
     """`eqx.filter_jit(fun, **jitkwargs)`, compiled with `options` (default `COMPILER_OPTIONS`)
-    when called at the top level; inside a user's `jax.jit`/`vmap`/`grad` it is inlined into
+    when called at the top level on the CPU backend; inside a user's `jax.jit`/`vmap`/`grad` it is inlined into
     the caller's program (whose options apply), as a plain `filter_jit` is."""
     if fun is None:
         return functools.partial(jit, options=options, **jitkwargs)
@@ -65,7 +72,7 @@ def _tuned(make, fun, jitkwargs, options=None):
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        if not _top_level():
+        if not _top_level() or not _on_cpu():
             return plain(*args, **kwargs)
         if _executables.active():  # stored executables (`_executables`)
             return _executables.call(tuned, fun, options, args, kwargs, filtered=filtered)

@@ -531,6 +531,26 @@ def test_programs_compile_with_the_library_options_at_top_level_only():
     assert abs(float(grad) - expect) <= 1e-10 * abs(expect)
 
 
+def test_programs_on_another_backend_compile_with_xla_defaults(monkeypatch):
+    """COMPILER_OPTIONS are XLA:CPU's: on a GPU, XLA refused them ("No such compile option:
+    'xla_cpu_use_fusion_emitters'", seen on an H200) and every mfmjax program failed. Off the
+    CPU backend a top-level call compiles the plain program (XLA's defaults), not the tuned one
+    (its cache stays empty), and gives the same numbers."""
+    import jax.numpy as jnp
+
+    import mfmjax._jit as j
+
+    f = j.jit(lambda x: jnp.sin(x) * 2.0)
+    monkeypatch.setattr(j._executables, "active", lambda: False)  # through `_cached`, counted
+    monkeypatch.setattr(j.jax, "default_backend", lambda: "gpu")
+    out = np.asarray(f(jnp.ones(3)))
+    assert f._cached._cache_size() == 0  # the program with CPU options was not compiled
+    assert np.array_equal(out, np.full(3, 2.0 * np.sin(1.0)))
+    monkeypatch.setattr(j.jax, "default_backend", lambda: "cpu")
+    assert np.array_equal(np.asarray(f(jnp.ones(3))), out)
+    assert f._cached._cache_size() == 1  # on the CPU backend the tuned program is used
+
+
 def test_xla_defaults_opt_out():
     """MFMJAX_XLA_DEFAULTS=1 compiles with XLA's defaults (no options are passed)."""
     code = ("import mfmjax._jit as j, jax.numpy as jnp; "
