@@ -59,7 +59,7 @@ from ._model import Model, plain_number
 from ._observers import observe_forced
 from ._padded import padded_forced
 from ._quadrature import edge_padded
-from ._search import plan_search, run_plan, validate_candidate
+from ._search import check_eta_reaches, plan_search, run_plan, structures, validate_candidate
 from ._signals import INTERSAMPLE, Signals
 from ._status import Status, describe
 
@@ -285,6 +285,7 @@ class OnlineConfig(eqx.Module):
                     f"OnlineConfig(): eta must have one entry per parameter of the largest "
                     f"candidate ({p}: a_0..a_nmax, each input's b, the offset), got {eta.size}"
                 )
+            check_eta_reaches("OnlineConfig", eta, structures(self.n, self.m, K), self.offset)
         self.eta = tuple(float(v) for v in eta) if eta is not None else None
         self.steady_rel = steady_rel
         self.steady_var = (tuple(_b.numbers_(fn, "steady_var", steady_var, lo=0))

@@ -754,6 +754,12 @@ def test_an_all_zero_eta_is_refused():
     with pytest.raises(ValueError, match=r"OnlineConfig\(\): eta is all zeros, so the constraint "
                                          r"eta\^T theta = 1 \(eq. 11\) has no solution"):
         _config(eta=(0.0,) * 7)
+    # zero on every column of the lower order (1 on a_3 alone, the unit-free choice for one
+    # order): every n = 2 candidate was flagged and every model came out third order, unsaid
+    with pytest.raises(ValueError, match=r"OnlineConfig\(\): eta is zero on every column of 4 "
+                                         r"of the 8 structures \(the first: n=2, m=\[0, 0\]\)"):
+        _config(n=(2, 3), eta=[0, 0, 0, 1, 0, 0, 0, 0, 0])
+    assert _config(n=(3,), eta=[0, 0, 0, 1, 0, 0, 0, 0, 0]).eta[3] == 1.0
 
 
 def test_plot_online_shows_only_what_falls_on_its_time_axis(tmp_path):

@@ -237,6 +237,11 @@ def test_exports(noisy, tmp_path):
         (dict(h=(1.0,), delays=[(0.0,), (-1.0,)]), r"delays\[1\]\[0\] must be >= 0"),
         (dict(h=(1.0,), validate=(0.0, 100.0)), "validate window"),
         (dict(h=(1.0,), chunk_size=0), "chunk_size must be an integer >= 1"),
+        # eta = 1 on a_3 alone (the unit-free choice for n = 3) leaves n = 2 no nonzero
+        # entry: its candidates came back flagged (nonfinite, a_n_zero, unstable), unsaid
+        (dict(h=(1.0,), n=(2, 3), m=[(0,), (0,)], eta=[0, 0, 0, 1, 0, 0, 0]),
+         r"eta is zero on every column of 1 of the 2 structures \(the first: n=2, m=\[0, 0\]\)"
+         r".*leave them out of the grid"),
     ],
 )
 def test_bad_grids(noisy, kw, match):

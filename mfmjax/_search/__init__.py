@@ -33,7 +33,9 @@ runs its loops on one core); a program's first run runs its first chunk alone, w
 
 from ._engine import run_plan as run_plan
 from ._grid import SCORES as SCORES
+from ._grid import check_eta_reaches as check_eta_reaches
 from ._grid import plan_search as plan_search
+from ._grid import structures as structures
 from ._result import SearchResult as SearchResult
 from ._search import search as search
 from ._validation import validate_candidate as validate_candidate

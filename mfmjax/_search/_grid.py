@@ -267,6 +267,7 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
         eta, dtype=jnp.float64)
     if eta.shape != (p,):
         raise ValueError(f"search(): eta must have {p} entries (padded layout)")
+    check_eta_reaches("search", np.asarray(eta), structs, signals.offset)
     # moment sources and the Legendre coefficients of every column for every (N, M)
     sources = [("y", -1, signals.output_rule)]
     sources += [("u", k, "cubic" if signals.smooth[k] else signals.intersample[k])
@@ -339,6 +340,26 @@ def _coefficients(pair_N: tuple, pair_M: tuple, i: int, degree: int) -> np.ndarr
     out = legendre_coefficients(pair_N, pair_M, i, degree)
     out.setflags(write=False)
     return out
+
+
+def check_eta_reaches(fn: str, eta: np.ndarray, structs, offset: bool) -> None:
+    """Refuse an eta (padded layout) that is zero on every column of a structure: eta^T theta
+    = 1 (eq. 11) has no solution there, and its candidates came back flagged (nonfinite,
+    a_n_zero, unstable), unsaid; the on-line identifier then never chose that order (eta = 1
+    on a_3 alone with n = (2, 3): every model third order)."""
+    n_max = max(s[0] for s in structs)
+    m_max = tuple(max(s[1][k] for s in structs) for k in range(len(structs[0][1])))
+    if eta.shape != (len(_mask(structs[0], n_max, m_max, offset)),):
+        return  # the caller refuses a wrong length in its own words
+    dead = [s for s in structs if not np.any(eta[np.asarray(_mask(s, n_max, m_max, offset))])]
+    if dead:
+        n, m = dead[0]
+        raise ValueError(
+            f"{fn}(): eta is zero on every column of {len(dead)} of the {len(structs)} "
+            f"structures (the first: n={n}, m={list(m)}), so eta^T theta = 1 (eq. 11) has no "
+            "solution for them and each would come back flagged; give eta a nonzero entry on "
+            f"their columns (padded layout: a_0..a_{n_max}, each input's b_k0..b_km with "
+            f"m = {list(m_max)}, the offset), or leave them out of the grid")
 
 
 def _mask(s, n_max, m_max, offset):
