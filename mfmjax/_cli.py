@@ -109,7 +109,8 @@ def _add_data_args(p: argparse.ArgumentParser, *, online: bool = False):
     g.add_argument("--time", help="time column name (uniform sampling)")
     g.add_argument("--dt", type=_number("dt", lo=0, lo_open=True),
                    help="sampling interval (when there is no time column)")
-    p.add_argument("--intersample", help="per input: zoh or foh (default foh)")
+    p.add_argument("--intersample", help="per input, comma-separated: zoh or foh; one value "
+                   "for every input (default foh)")
     p.add_argument("--delays", help="per input transport delay in time units "
                    "(search: one grid per input separated by ';')")
     p.add_argument("--names", help="column names for a file without header (comma separated)")
@@ -292,7 +293,7 @@ def _load_signals(args, saved=None):
     inputs = _columns(args)
     kwargs = {}
     if args.intersample:
-        kwargs["intersample"] = [s.strip() for s in args.intersample.split(",")]
+        kwargs["intersample"] = _intersample(args, len(inputs))
     if args.delays:
         kwargs["delays"] = _floats(args.delays, "delays")
     if args.time is None and args.dt is None:
@@ -463,14 +464,20 @@ def _record_note(path: str, args, sig) -> None:
               file=sys.stderr)
 
 
+def _intersample(args, K: int) -> list[str]:
+    """--intersample as one rule per input: one value is every input's (`--intersample zoh`
+    on three inputs, as the record line advises, was refused: "needs one entry per input")."""
+    rules = [v.strip() for v in args.intersample.split(",")]
+    return rules * K if len(rules) == 1 else rules
+
+
 def _model_settings_note(args, model) -> None:
     """On stderr: --delays or --intersample given to validate/report differ from the saved
     model's, which are used (they were ignored without a word)."""
     for option, given, own in (
             ("--delays", args.delays and _floats(args.delays, "delays"),
              [float(v) for v in np.asarray(model.delays)]),
-            ("--intersample", args.intersample and [v.strip() for v in
-                                                     args.intersample.split(",")],
+            ("--intersample", args.intersample and _intersample(args, len(model.intersample)),
              list(model.intersample))):
         if given and list(given) != own:
             print(f"note: {option} {','.join(map(str, given))} is not used: the model's own "
@@ -668,8 +675,7 @@ def _online_config(args, K: int, dt: float, names):
     replaced = []  # said once the config is valid (a user error stays one line)
     for key, option, value in (
             ("delays", "--delays", args.delays and _floats(args.delays, "delays")),
-            ("intersample", "--intersample",
-             args.intersample and [s.strip() for s in args.intersample.split(",")])):
+            ("intersample", "--intersample", args.intersample and _intersample(args, K))):
         if value:
             if key in kwargs and list(np.atleast_1d(kwargs[key])) != list(value):
                 replaced.append(f"note: {option} replaces {key} = {kwargs[key]} of --config")

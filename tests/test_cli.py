@@ -57,6 +57,10 @@ def test_identify_says_when_its_inputs_are_linearly_dependent(csv_file, tmp_path
     assert main(argv) == 0
     assert ("K=2, inputs read as foh,foh between samples (the default; --intersample zoh for "
             "inputs held between samples)" in capsys.readouterr().out)
+    # following that advice: one value is every input's (it was refused on K = 2: "intersample
+    # needs one entry per input (2), got 1")
+    assert main(argv + ["--intersample", "zoh"]) == 0
+    assert "K=2, inputs read as zoh,zoh between samples\n" in capsys.readouterr().out
 
 
 def test_times_of_an_epoch_record_print_in_full(csv_file, tmp_path, capsys):
