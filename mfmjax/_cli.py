@@ -8,6 +8,7 @@ traceback reaches the user in either case (set MFMJAX_TRACEBACK=1 to see it for 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -1210,7 +1211,7 @@ def _cmd_report(args):
     args.model = _model_path(args)
     model = mfmjax.load_model(args.model)
     cov, note = an.saved_covariance(args.model, model)  # the joint one where it was saved
-    sig = _load_signals(args, _saved_lines(args.model, args))[0]
+    sig, trend = _load_signals(args, _saved_lines(args.model, args))
     window = _window(args.window, "window") if args.window else None
     ob = _observer_window(args.observer_window, window or _whole(sig), sig,
                           window and "--window")
@@ -1218,6 +1219,10 @@ def _cmd_report(args):
     # otherwise precede the one-line error)
     res = an.residuals(model, sig, window, observer_window=ob, lags=args.lags)
     cmp = an.compare(model, sig, window, observer_window=ob)
+    if trend is not None:  # the curves are deviations from the removed line: said on the axis
+        # (compare.png read "T_degC" over -70..0 for a plate near 140 degC)
+        line = (f"{float(trend.y_level):.6g}" if trend.kind == "constant" else "its line")
+        cmp = dataclasses.replace(cmp, output_name=f"{cmp.output_name} - {line} (deviation)")
     step = an.step_response(model, covariance=cov)
     bode = an.frequency_response(model, covariance=cov)
     os.makedirs(args.o, exist_ok=True)

@@ -151,3 +151,22 @@ def test_search_estimate_save_keeps_the_covariance_for_report(files, capsys):
                  str(folder / "est")]) == 0
     assert json.loads((folder / "est" / "report.json").read_text())["bands"] is True
     assert "the fitted delays' uncertainty included" in capsys.readouterr().out
+
+
+def test_report_of_detrended_data_says_its_curves_are_deviations(files, capsys):
+    """With --detrend, compare.png plots deviations from the removed line but read as the
+    signal itself ("T_degC" over -70..0 for a plate near 140 degC: a DaISy heater report);
+    the output's name now says what is plotted, in the figure and the summary."""
+    folder, _ = files
+    saved, out = folder / "detrended.json", folder / "dev"
+    assert main(["identify", str(folder / "data.csv"), *ARGS, "--n", "2", "--N", "4", "--M",
+                 "4", "--h", "1.5", "--delays", "0.15", "--detrend", "constant", "--save",
+                 str(saved)]) == 0
+    capsys.readouterr()
+    level = mfmjax.detrend(mfmjax.Signals.from_csv(
+        folder / "data.csv", output="temp", inputs=["valve"], time="t", intersample="zoh"),
+        "constant")[1].y_level
+    assert main(["report", str(saved), str(folder / "data.csv"), *ARGS, "--detrend",
+                 "constant", "-o", str(out)]) == 0
+    assert f"compare temp - {float(level):.6g} (deviation) on " in capsys.readouterr().out
+    _png(out / "compare.png")
