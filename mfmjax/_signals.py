@@ -281,10 +281,10 @@ def output_start(y) -> float:
     of their least-squares line. y[0] alone put the offset term on 9 of 100 records of a 10 dB
     Monte Carlo whose output starts at zero; their mean put it on first-order responses that
     rise within those samples."""
-    return _start_and_error(y)[0]
+    return start_and_error(y)[0]
 
 
-def _start_and_error(y) -> tuple[float, float]:
+def start_and_error(y) -> tuple[float, float]:
     """(`output_start`, its standard error from the line's residuals; 0 for 2 samples)."""
     head = np.asarray(y[: min(10, y.shape[0])], dtype=np.float64)
     L, t = head.shape[0], np.arange(head.shape[0])
@@ -309,7 +309,7 @@ def _undecided(y, cols) -> bool:
     then away from zero at the first sample: a heater on from the start above an ambient
     level (the term needed) and a plant started from x0 != 0 (not needed) look alike there."""
     spread = float(np.subtract(*np.percentile(y, [98, 2])))  # noise widens the full range
-    start, se = _start_and_error(y)
+    start, se = start_and_error(y)
     away = min(0.1 * float(np.ptp(y)), max(UNDECIDED_START * spread, 3 * se))
     return bool(len(cols)) and abs(start) > away \
         and all(0 < np.ptp(col) and np.std(col) > INPUT_SPREAD * abs(np.mean(col))

@@ -62,7 +62,7 @@ from ._linalg import hurwitz, small_matmul, solve
 from ._model import Model
 from ._pytree import replace_fields
 from ._quadrature import delayed_samples, edge_padded, record_bucket, shift_samples, split_delay
-from ._signals import Signals
+from ._signals import Signals, start_and_error
 from ._simulate import step_terms
 from ._status import Status
 
@@ -478,8 +478,11 @@ def _start_and_noise(signals: Signals, model: Model | None) -> tuple[str, bool |
     fit. Not white: the standard errors, which assume white noise, are too small (2.1-2.8x
     under AR(1) noise of pole 0.95 in that audit, status ok, unsaid). `model` None (a fit that
     did not converge: its best iterate can be far off, and its response from rest said "not
-    at rest" of 3 of 6 records at rest in a review): the output's first sample against zero,
-    which a step at the first sample does not move; no whiteness."""
+    at rest" of 3 of 6 records at rest in a review): the output's start against zero, read
+    from the line through its first samples (`output_start`, which a step at the first sample
+    barely moves) and beyond 3 of that line's standard errors (y[0] alone: one noise sample
+    said "not at rest" of 3 of 30 records at rest at 10 dB, an audit of 2026-11-28); no
+    whiteness."""
     from ._analysis import RESIDUAL_LAGS, whiteness
     from ._simulate import simulate
 
@@ -493,16 +496,19 @@ def _start_and_noise(signals: Signals, model: Model | None) -> tuple[str, bool |
                 sim = np.asarray(simulate(rest, u, dt=signals.host_dt))
         except ValueError:  # it overflows (an unstable model): the first sample, as for None
             pass
-    start = (f"{signals.output_name} starts {{:.4g}} away from the model's response from rest",
-             y[:10] - sim[:10]) if sim is not None else (
-                 f"{signals.output_name} starts at {{:.4g}}", y[:1])
+    if sim is not None:
+        start = (f"{signals.output_name} starts {{:.4g}} away from the model's response from "
+                 "rest", y[:10] - sim[:10], 0.0)
+    else:  # the start read from the first samples' line, beyond 3 of its standard errors
+        level, se = start_and_error(y)  # (y[0] alone: one 10 dB noise sample said "not at
+        start = (f"{signals.output_name} starts at {{:.4g}}", [level], 3 * se)  # rest")
     cols = [(*start, np.ptp(y), 0.1)] + [
-        (f"{name} starts at {{:.4g}}", uk[:10], np.ptp(uk), 1.0)
+        (f"{name} starts at {{:.4g}}", uk[:10], 0.0, np.ptp(uk), 1.0)
         for name, uk in zip(signals.input_names, u.T)]
     out = []
-    for text, x, span, share in cols:
+    for text, x, margin, span, share in cols:
         x0 = float(np.mean(x))
-        if span > 0 and abs(x0) > share * span:
+        if span > 0 and abs(x0) > max(share * span, margin):
             out.append(text.format(x0) + f" (range {float(span):.3g})")
     white = None
     lags = min(RESIDUAL_LAGS, y.size // 4)
