@@ -117,6 +117,28 @@ class SrivcFit(eqx.Module):
         """The status in words (concrete results only)."""
         return describe_srivc(int(self.status))
 
+    def summary(self) -> str:
+        """Parameters with standard errors, E, and the iteration's verdict (a fit that did not
+        converge printed "status ok" through `model.summary()`, the model's own bits)."""
+        if np.ndim(self.theta) != 1:
+            raise ValueError("SrivcFit.summary(): one fit at a time; this holds a batch (from "
+                             "jax.vmap): take one with jax.tree.map(lambda x: x[i], fit)")
+        lines = [f"SRIVC fit  n={self.model.n}  m={list(self.model.m)}",
+                 f"{'parameter':<12}{'value':>16}{'std error':>14}"]
+        for name, v, e in zip(self.names, np.asarray(self.theta), np.asarray(self.std_errors)):
+            lines.append(f"{name:<12}{v:>16.6e}{e:>14.3e}")
+        lines.append(f"E: {float(self.E):.6e}  sigma2: {float(self.sigma2):.6e}")
+        if int(self.model.status) & Status.UNSTABLE:
+            lines.append("UNSTABLE: the returned A(s) has a root with Re >= 0 (see the model's "
+                         "status): validate it before use")
+        its = int(self.iterations)
+        lines.append(f"converged after {its} iterations" if bool(self.converged) else
+                     f"NOT CONVERGED ({self.describe()} after {its} iterations): the estimate "
+                     "is the best iterate by simulation error and its standard errors are not "
+                     "those of a converged fit; check the start model and the data, or raise "
+                     "max_iter")
+        return "\n".join(lines)
+
 
 def _names(n, m, has_offset):
     names = [f"a_{i}" for i in range(n)]

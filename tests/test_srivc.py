@@ -479,5 +479,17 @@ def test_warning_says_to_shift_a_record_that_starts_away_from_rest():
     assert np.max(np.abs(np.asarray(fit.model.a) - [2.0, 3.0, 1.0])) > 0.1  # the bias said
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        mfmjax.srivc(sig, start, max_iter=1)
+        stopped = mfmjax.srivc(sig, start, max_iter=1)
     assert len(caught) == 1 and "shift the record" not in str(caught[0].message)
+    # where the user looks: the fit's summary says it did not converge (`model.summary()`,
+    # the only summary there was, printed "status ok"), a converged one says so too
+    assert "status" in stopped.model.summary() and "ok" in stopped.model.summary()
+    text = stopped.summary()
+    assert "NOT CONVERGED (max_iter after 1 iterations): the estimate is the best iterate" in text
+    for name, v in zip(stopped.names, np.asarray(stopped.theta)):
+        assert f"{name:<12}{v:>16.6e}" in text
+    done = mfmjax.srivc(sig, start)
+    assert bool(done.converged)
+    assert f"converged after {int(done.iterations)} iterations" in done.summary()
+    with pytest.raises(ValueError, match="one fit at a time"):
+        jax.tree.map(lambda x: np.stack([x, x]), done).summary()  # as jax.vmap stacks
