@@ -1514,6 +1514,15 @@ class OnlineIdentifier:
                         f"column; if the data are sampled less often than "
                         f"dt={self.state.config.dt:g}, set OnlineConfig.dt to their step"
                         if gone else "") + ")")
+        cfg = self.state.config
+        if not closed:  # (it blamed the operating point: a 25-min record, interval=50 min)
+            return (f"no prediction yet: no interval has closed (interval={cfg.interval:g} "
+                    f"time units; the first identification needs n_start={cfg.n_start} of "
+                    "them): feed more data, or check that interval is in the data's time unit")
+        if len(closed) < cfg.n_start:
+            return (f"no prediction yet: {len(closed)} interval(s) closed, and the first "
+                    f"identification needs n_start={cfg.n_start} (interval={cfg.interval:g} "
+                    "time units)")
         return ("no prediction yet: no operating point was detected (the first model is "
                 "identified at the onset of a steady run: an interval where the output and "
                 "every input vary less than steady_rel times their variance so far)")

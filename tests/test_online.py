@@ -707,7 +707,13 @@ def test_config_refuses_an_h_too_wide_for_the_first_window_and_says_why_no_predi
     assert math.isnan(quiet.mse())
     assert quiet.why_no_prediction().startswith("no prediction yet (why is not known")
     kept = OnlineIdentifier(_config())
-    kept.update(t[:3 * S], y[:3 * S], u[:3 * S])
+    kept.update(t[:S // 2], y[:S // 2], u[:S // 2])  # no interval closed: it blamed the
+    # operating point (a 25-min record with interval = 50 meant as minutes, an audit)
+    assert kept.why_no_prediction() == (
+        "no prediction yet: no interval has closed (interval=250 time units; the first "
+        "identification needs n_start=8 of them): feed more data, or check that interval is "
+        "in the data's time unit")
+    kept.update(t[S // 2:3 * S], y[S // 2:3 * S], u[S // 2:3 * S])
     assert kept.why_no_prediction() == "no prediction yet: waiting: 3 of 8 intervals"
     # the first model exists (interval 7 closed) but has predicted nothing yet: it said "no
     # prediction yet: first model", as if the model were the reason (an audit of 2026-11-28)
