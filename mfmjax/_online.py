@@ -1192,6 +1192,8 @@ def update(state: OnlineState, t, y, u):
     _b.eager_only("update", t, y, u)
     c = state.config
     K, S, L = c.n_inputs, c.samples, c.buffer
+    narrow = getattr(t, "dtype", None)  # float32 times cannot be on a fine grid: said
+    narrow = narrow if narrow in (np.float32, np.float16) else None
     t, y, u = _chunk_arrays(t, y, u, K)
     if t.size == 0 and not math.isfinite(float(state.t0)):  # nothing fed yet: t0 stays open
         return state, OnlineOutputs(t=np.zeros(0), y=np.zeros(0), y_pred=np.zeros(0),
@@ -1207,8 +1209,12 @@ def update(state: OnlineState, t, y, u):
         raise ValueError(
             f"update(): t is not on the sampling grid t0 + i*dt (t0={t0!r}, dt={c.dt:g}): "
             f"t[{j}] = {float(t[j])!r} is {float(t[j] - (t0 + idx[j] * c.dt)):+.3g} from its "
-            f"grid point {float(t0 + idx[j] * c.dt)!r}; round the times to the grid, or check "
-            "dt (a logger's real dt may differ from its nominal one)")
+            f"grid point {float(t0 + idx[j] * c.dt)!r}; " + (
+                f"t is {np.dtype(narrow).name}, whose spacing there is "
+                f"{float(np.spacing(np.asarray(t[j], narrow))):.3g}: pass the times as float64 "
+                "(rounding them in float32 cannot put them on the grid)" if narrow else
+                "round the times to the grid, or check dt (a logger's real dt may differ from "
+                "its nominal one)"))
     back = np.flatnonzero(np.diff(idx) <= 0)
     if back.size:
         i = int(back[0]) + 1

@@ -267,6 +267,14 @@ def test_update_errors():
     with pytest.raises(ValueError, match=r"sampling grid t0 \+ i\*dt \(t0=0.0, dt=1\): t\[1\] = "
                        r"1.5 is -0.5 from its grid point 2.0; round the times"):
         mfmjax.online.update(state, [0.0, 1.5], [0.0, 0.0], np.zeros((2, 2)))
+    # float32 times (spacing 0.0078 at 1e5): "round the times to the grid" cannot be done in
+    # float32; the advice is float64 (an audit)
+    narrow = mfmjax.online.init(_config(dt=0.1, interval=25.0, T_obfin=50.0, T_obinit=100.0,
+                                        h=(5.0, 10.0)))
+    with pytest.raises(ValueError, match=r"t is float32, whose spacing there is 0.00781: pass "
+                                         r"the times as float64"):
+        mfmjax.online.update(narrow, (1e5 + 0.1 * np.arange(10)).astype(np.float32),
+                             np.zeros(10), np.zeros((10, 2)))
     # epoch seconds at dt = 0.1 written with 3 decimals (a CSV) miss the grid by the float's
     # rounding at 1.7e9 (2.4e-7 s > 1e-6 dt): accepted (they were refused)
     fine = mfmjax.online.init(_config(dt=0.1, interval=25.0, T_obfin=50.0, T_obinit=100.0,
