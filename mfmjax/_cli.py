@@ -801,6 +801,7 @@ def _cmd_online(args):
         raise _UserError("give --time COLUMN or --dt STEP (the sampling interval, in the "
                          "data's time unit)")
     _writable_folder("--checkpoint", args.checkpoint)
+    rows = np.arange(t.size)  # each sample's data row (0-based), for update()'s errors
     before = {"sse": 0.0, "count": 0, "intervals": 0}
     resumed = partial = False
     if args.checkpoint and os.path.exists(args.checkpoint):
@@ -814,14 +815,19 @@ def _cmd_online(args):
             before = {k: extra["prediction"][k] for k in before}
         done = float(state.t0) + (int(state.n_seen) - 0.5) * state.config.dt
         keep = t > done  # continue after the samples the checkpoint has seen
-        t, y, u = t[keep], y[keep], u[keep]
+        t, y, u, rows = t[keep], y[keep], u[keep], rows[keep]
     else:
         config, _ = _online_config(args, u.shape[1], dt, (args.output, inputs))
         ident = OnlineIdentifier(config)
     chunk = max(ident.state.config.samples, 1)
     progress = _Progress("online") if not args.json else None
     for c0 in range(0, t.size, chunk):
-        ident.update(t[c0 : c0 + chunk], y[c0 : c0 + chunk], u[c0 : c0 + chunk])
+        try:
+            ident.update(t[c0 : c0 + chunk], y[c0 : c0 + chunk], u[c0 : c0 + chunk])
+        except ValueError as err:  # t[j] of the chunk: said as the file's data row (it read
+            # "t[0] = 700.5" for data row 702, an audit)
+            raise _UserError(re.sub(r"\bt\[(\d+)\]", lambda m: f"the time at data row "
+                                    f"{int(rows[c0 + int(m.group(1))]) + 1}", str(err))) from None
         if progress is not None:
             progress(min(c0 + chunk, t.size), t.size)
     s = ident.series()

@@ -299,6 +299,18 @@ def test_online_jittered_time_column_suggests_dt(plant, capsys, tmp_path):
                     "is the median step of --time time: give --dt with the sampling interval")
 
 
+def test_online_off_grid_time_is_named_by_its_data_row(plant, capsys, tmp_path):
+    """One time off the grid in the middle of a file: the error named update()'s chunk
+    ("t[0] = 700.5", the CLI feeding one interval per chunk), not the file's row."""
+    t, y, u, _ = switching_experiment(n_intervals=20)
+    t = t[:CUT].copy()
+    t[701] += 0.3
+    path = _write_csv(tmp_path / "off.csv", ["time", "temp", "u1", "u2"],
+                      [t, y[:CUT], u[:CUT, 0], u[:CUT, 1]])
+    _one_line_error(capsys, 2, ["online", str(path), *ONLINE],
+                    f"the time at data row 702 = {float(t[701])!r} is +0.3 from its grid point")
+
+
 def test_online_memory_bound(plant, capsys, tmp_path, monkeypatch):
     """interval = 1e5 samples: a 0.8 M-sample buffer (19 MB) whose identification work is
     about _WORK_PER_BUFFER times that (4.9 GB), refused when 1 GiB is available."""
