@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -1156,7 +1157,7 @@ def _cmd_validate(args):
 
     model = mfmjax.load_model(_model_path(args))
     sig = _load_signals(args, _saved_lines(_model_path(args), args))[0]
-    window = _window(args.window, "window") if args.window else None
+    window = _record_window(args.window, "window", sig) if args.window else None
     ob = _observer_window(args.observer_window, window or _whole(sig), sig,
                           window and "--window")
     obs = mfmjax.observe(model, sig, window, observer_window=ob)
@@ -1218,7 +1219,7 @@ def _cmd_report(args):
     model = mfmjax.load_model(args.model)
     cov, note = an.saved_covariance(args.model, model)  # the joint one where it was saved
     sig, trend = _load_signals(args, _saved_lines(args.model, args))
-    window = _window(args.window, "window") if args.window else None
+    window = _record_window(args.window, "window", sig) if args.window else None
     ob = _observer_window(args.observer_window, window or _whole(sig), sig,
                           window and "--window")
     # residuals first: it checks --lags before observing (a warning of the observer would
@@ -1386,7 +1387,7 @@ def main(argv=None) -> int:
                 # process pruning it) must not stop the command
                 print(f"warning: {_first_line(err)}", file=sys.stderr)
         with warnings.catch_warnings():
-            warnings.showwarning = _one_line_warning
+            warnings.showwarning = functools.partial(_one_line_warning, command=args.command)
             # its own note says which of --delays/--intersample the model's replace
             warnings.filterwarnings("ignore", message=r"observe\(\): the signals' intersample")
             # and its names note says when the columns differ from the model's (`_names_note`)
@@ -1431,8 +1432,13 @@ def _runtime_check_message(err: BaseException) -> str | None:
     return found.group(1).strip() if found else None
 
 
-def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+def _one_line_warning(message, category, filename, lineno, file=None, line=None, *,
+                      command=None):
+    """A library warning on one line, its Python spelling of a window in the command's option
+    (it advised "window=(t_start, t_end)" on the command line)."""
     text = " ".join(str(message).split())
+    option = "--window" if command in ("validate", "report") else "--validate-window"
+    text = text.replace("(window=(t_start, t_end))", f"({option} T0,T1)")
     print(f"warning: {text}", file=sys.stderr)
 
 

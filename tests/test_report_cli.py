@@ -98,7 +98,8 @@ def test_report_without_covariance_says_no_bands(files, capsys):
 @pytest.mark.parametrize("extra,match", [
     (["--lags", "0"], "--lags"),
     (["--lags", "400"], "lags=400 is more than a quarter"),
-    (["--window", "50,80"], "window (50, 80) must lie inside the record"),
+    # named as the option (it said "observe(): window (50, 80) must lie ...")
+    (["--window", "50,80"], "--window 50,80 must lie inside the record [0, 59.95]"),
     (["--observer-window", "-1"], "--observer-window"),
 ])
 def test_report_user_errors_one_line_exit_2(files, capsys, extra, match):
@@ -170,3 +171,14 @@ def test_report_of_detrended_data_says_its_curves_are_deviations(files, capsys):
                  "constant", "-o", str(out)]) == 0
     assert f"compare temp - {float(level):.6g} (deviation) on " in capsys.readouterr().out
     _png(out / "compare.png")
+
+
+def test_cli_warnings_spell_windows_as_the_commands_options(files, capsys):
+    """observe()'s advice "start the window at 0.15 or later (window=(t_start, t_end))" is
+    the Python spelling; on the command line it names --window (validate/report)."""
+    folder, _ = files
+    assert main(["validate", str(folder / "model.json"), str(folder / "data.csv"), *ARGS,
+                 "--window", "0,59.95"]) == 0
+    err = capsys.readouterr().err
+    assert "start the window at 0.15 or later (--window T0,T1)" in err, err
+    assert "window=(" not in err
