@@ -803,7 +803,7 @@ def _cmd_online(args):
                          "data's time unit)")
     _writable_folder("--checkpoint", args.checkpoint)
     rows = np.arange(t.size)  # each sample's data row (0-based), for update()'s errors
-    before = {"sse": 0.0, "count": 0, "intervals": 0}
+    before = {"sse": 0.0, "count": 0, "intervals": 0, "predicted": 0}
     resumed = partial = False
     if args.checkpoint and os.path.exists(args.checkpoint):
         state, extra = load_with_extra(args.checkpoint)
@@ -813,7 +813,8 @@ def _cmd_online(args):
         resumed = "prediction" in extra  # written by this command: it holds the errors so far
         partial = not resumed and int(state.n_closed) > 0  # written by OnlineIdentifier.save
         if resumed:
-            before = {k: extra["prediction"][k] for k in before}
+            before = {k: extra["prediction"].get(k) for k in before}  # (no "predicted"
+            # in a checkpoint written before 2026-11-28: unknown)
         done = float(state.t0) + (int(state.n_seen) - 0.5) * state.config.dt
         keep = t > done  # continue after the samples the checkpoint has seen
         t, y, u, rows = t[keep], y[keep], u[keep], rows[keep]
@@ -833,7 +834,8 @@ def _cmd_online(args):
             progress(min(c0 + chunk, t.size), t.size)
     s = ident.series()
     run = dict(ident.prediction)  # this call's squared errors (the wrapper's running sums)
-    total = {k: before[k] + run[k] for k in run}
+    total = {k: None if before[k] is None or run[k] is None else before[k] + run[k]
+             for k in run}
     if args.checkpoint:  # the whole run's sums go on with the state, for the next resume
         ident.prediction = total
         ident.save(args.checkpoint)
@@ -847,6 +849,8 @@ def _cmd_online(args):
                  "earlier prediction errors)")
     else:
         scope = f"{run['intervals']} intervals"
+    if total["predicted"] is not None and total["count"]:  # the MSE is over these alone
+        scope += f" ({total['predicted']} of them predicted)"
     res = {"mse": mse, "mse_scope": scope, "mse_this_call": mse_run, "models": ident.models,
            "intervals": total["intervals"]}
     why = None

@@ -1425,6 +1425,11 @@ def load(path) -> OnlineState:
 # -- convenience wrapper ------------------------------------------------------------------------
 
 
+def _plus(count, more: int):
+    """A running count, None (unknown: an older checkpoint) staying None."""
+    return None if count is None else count + more
+
+
 class OnlineIdentifier:
     """Thin stateful wrapper: keeps the state, the prediction series, events and model records.
 
@@ -1448,7 +1453,9 @@ class OnlineIdentifier:
         self._series: list[OnlineOutputs] = []
         # squared prediction errors since the identifier started, across save/load and
         # without the history: sum, count, intervals (`mse`; the CLI's checkpoints too)
-        self.prediction = {"sse": 0.0, "count": 0, "intervals": 0}
+        # and "predicted": the intervals with a prediction (the CLI said "MSE over 16
+        # intervals" of a run whose MSE was over 11); None when a checkpoint did not keep it
+        self.prediction = {"sse": 0.0, "count": 0, "intervals": 0, "predicted": 0}
         self._resumed = False
 
     def update(self, t, y, u) -> OnlineOutputs:
@@ -1460,7 +1467,9 @@ class OnlineIdentifier:
         ok = np.isfinite(out.y_pred) & np.isfinite(out.y)
         self.prediction = {"sse": self.prediction["sse"] + float(np.sum(
             (out.y[ok] - out.y_pred[ok]) ** 2)), "count": self.prediction["count"] + int(ok.sum()),
-            "intervals": self.prediction["intervals"] + len(out.events)}
+            "intervals": self.prediction["intervals"] + len(out.events),
+            "predicted": _plus(self.prediction.get("predicted"), sum(
+                e.get("prediction") == "predicted" for e in out.events))}
         if self.keep_history:
             self.events.extend(out.events)
             self._series.append(out)
@@ -1570,7 +1579,7 @@ class OnlineIdentifier:
         ident = cls(state=state, keep_history=keep_history)
         ident.models = list(extra.get("models", []))
         if "prediction" in extra:
-            ident.prediction = {k: extra["prediction"][k] for k in ident.prediction}
+            ident.prediction = {k: extra["prediction"].get(k) for k in ident.prediction}
         ident._resumed = True
         return ident
 

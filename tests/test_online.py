@@ -230,6 +230,10 @@ def test_mse_without_history_equals_mse_with_it(switching):
 
 def test_single_sample_chunks_equal_large_chunks(switching):
     t, y, u, _, full = switching
+    # the intervals predicted (the MSE's scope) are those whose prediction is finite
+    pred = full.series()["y_pred"].reshape(-1, S)
+    assert full.prediction["predicted"] == int(np.isfinite(pred).any(axis=1).sum()) > 0
+    assert full.prediction["intervals"] == pred.shape[0]
     n = 11 * S + 7
     small = _run(t[:n], y[:n], u[:n], chunk=1)
     np.testing.assert_array_equal(small.series()["y_pred"], full.series()["y_pred"][: 11 * S])
