@@ -1515,7 +1515,11 @@ class OnlineIdentifier:
                     if why == "predicted" else why))
         held = [e["action"] for e in self.events if e.get("action", "none") != "none"]
         if held:
-            return f"no prediction yet: {held[-1]}"
+            hint = ("; a lower tr_corr (OnlineConfig(tr_corr=...), in the CLI's --config "
+                    "'tr_corr = 0.3') identifies on weaker correlation (0.5 is the paper's "
+                    "choice, Table 1)" if held[-1].startswith("skipped: input-output "
+                                                           "correlation") else "")
+            return f"no prediction yet: {held[-1]}{hint}"
         if not self.keep_history or self._resumed:  # no events to read: do not guess
             return ("no prediction yet (why is not known: the events are not kept with "
                     "keep_history=False or across a load)")

@@ -139,6 +139,11 @@ def test_correlation_test_blocks_identification():
     said = [float(m.group(1)) for e in ident.events
             if (m := re.search(r"largest over the window's intervals: ([\d.e+-]+)\)", e["action"]))]
     assert said and all(0 <= v < 0.99 for v in said)
+    # and what to change: it said why, not what to do (a CLI run with interval = 100 ended at
+    # "largest 0.479" under tr_corr = 0.5; tr_corr = 0.3 then identified 10 models)
+    assert ident.why_no_prediction().endswith(
+        "; a lower tr_corr (OnlineConfig(tr_corr=...), in the CLI's --config 'tr_corr = 0.3') "
+        "identifies on weaker correlation (0.5 is the paper's choice, Table 1)")
 
 
 def test_outlier_is_not_adopted_and_kept_model_is_reported():
