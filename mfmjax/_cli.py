@@ -700,7 +700,8 @@ def _online_config(args, K: int, dt: float, names):
                          "CSV's columns); drop them from the config")
     bad = sorted(set(kwargs) - known)
     if bad:
-        raise _UserError(f"--config: unknown setting(s) {bad}; known: {sorted(known)}")
+        raise _UserError(f"--config: unknown setting(s) {bad}; known: {sorted(known)}" + (
+            "; dt comes from --time COLUMN or --dt STEP" if "dt" in bad else ""))
     given = sorted(kwargs)
     kwargs.setdefault("input_names", names[1])
     kwargs.setdefault("output_name", names[0])
@@ -868,7 +869,7 @@ def _cmd_online(args):
     if args.json:
         _print_json(res)
     else:
-        print(model_table(ident.models, end=ident._end()))
+        print(model_table(ident.models, end=ident._end(), unit=""))  # the CSV's own unit
         shown = "undefined (no prediction yet)" if not total["count"] else f"{mse:.6g}"
         print(f"\nmean square prediction error: {shown} over {scope}")
         if why:

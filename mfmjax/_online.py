@@ -179,7 +179,7 @@ class OnlineConfig(eqx.Module):
         if bad:
             raise ValueError(f"OnlineConfig(): unknown improvements {bad}; choose from "
                              f"{list(IMPROVEMENTS)}")
-        wide = "window" in improvements  # 2000 s re-identification windows, h up to 200 s
+        wide = "window" in improvements  # 3000 s re-identification windows, h up to 200 s
         n_reident = (12 if wide else 4) if n_reident is None else n_reident
         h = ((50.0, 100.0, 200.0) if wide else (50.0, 100.0)) if h is None else h
         K = _b.integer(fn, "n_inputs", n_inputs, lo=1, fix="the on-line identifier needs inputs")
@@ -987,7 +987,7 @@ def _prediction_signals(state: OnlineState, j: int, delay: float):
     need = math.ceil(delay / c.dt) + 1  # input history the delays reach
     u[: mg - need] = 0.0  # (the margin is sized for the largest allowed delay)
     if not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
-        return None, "no prediction: NaN samples in the observer window or inputs"
+        return None, "no prediction: NaN or inf samples in the observer window or inputs"
     return _window_signals(c, y, u, 0.0), "predicted"
 
 
@@ -1438,6 +1438,11 @@ class OnlineIdentifier:
 
     def __init__(self, config: OnlineConfig | None = None, *, state: OnlineState | None = None,
                  keep_history: bool = True, **kwargs):
+        unknown = sorted(set(kwargs) - set(OnlineConfig.__dataclass_fields__))
+        if unknown:  # (keep_histroy=False read "give either config or its settings")
+            raise TypeError(f"OnlineIdentifier(): unknown argument(s) {unknown}; it takes "
+                            "config, state, keep_history, or OnlineConfig's settings as "
+                            "keywords")
         if config is not None and kwargs:
             raise TypeError(f"OnlineIdentifier(): give either config or its settings as "
                             f"keywords, not both (got config and {sorted(kwargs)}); use "
@@ -1595,9 +1600,11 @@ class OnlineIdentifier:
         return float(self.state.t0) + int(self.state.n_seen) * self.state.config.dt
 
 
-def model_table(models, end=None) -> str:
-    """The paper's Tables 2-3 (or 4-5) in one: windows, MF settings, orders, parameters, E."""
-    lines = [f"{'nr':>3} {'op':>4} {'ident [s]':>13} {'sim [s]':>13} {'N':>3} {'M':>3} "
+def model_table(models, end=None, unit: str = "s") -> str:
+    """The paper's Tables 2-3 (or 4-5) in one: windows, MF settings, orders, parameters, E.
+    `unit`: the time unit in the window columns' headers ("" for none: a CSV's own unit)."""
+    ident, sim = (f"ident [{unit}]", f"sim [{unit}]") if unit else ("ident", "sim")
+    lines = [f"{'nr':>3} {'op':>4} {ident:>13} {sim:>13} {'N':>3} {'M':>3} "
              f"{'h':>6} {'n':>2} {'m':>5} {'E_current':>10} {'E_reident':>10}  parameters"]
     for r in models:
         sim_end = r["sim_end"] if r["sim_end"] is not None else end

@@ -355,6 +355,8 @@ def test_cli_online_table_plot_json(switching, switching_csv, tmp_path, capsys, 
     assert main(["online", *args]) == 0
     text = capsys.readouterr().out
     assert "mean square prediction error" in text and "p2" in text and "E_reident" in text
+    # the windows' headers carry no unit the CSV may not have (they read "ident [s]")
+    assert "ident [s]" not in text and "        ident           sim" in text
     # --delays beside a --config that sets delays replaces them: said (it was silent)
     cfg.write_text("n = [2]\ninterval = 250\ntr_corr = 0.5\ndelays = [3.0, 0.0]\n")
     head_short = tmp_path / "short.csv"  # 3 intervals: the note is all this checks
@@ -386,6 +388,8 @@ def test_cli_online_checkpoint_resume(switching, switching_csv, tmp_path, capsys
 
 @pytest.mark.parametrize("content, match", [
     ("bogus = 1\n", "unknown setting"), ("n = [\n", "not valid TOML"), ("tr_corr = 2.0\n", "tr_corr"),
+    ("dt = 2\n", "unknown setting(s) ['dt']; known: "),  # where dt comes from, named:
+    ("dt = 2\n", "; dt comes from --time COLUMN or --dt STEP"),
 ])
 def test_cli_online_config_errors(switching_csv, tmp_path, capsys, content, match):
     from mfmjax._cli import main
@@ -743,7 +747,7 @@ def test_config_refuses_an_h_too_wide_for_the_first_window_and_says_why_no_predi
     kept.update(t[8 * S:9 * S], y[8 * S:9 * S], np.full((S, 2), np.nan))
     assert math.isnan(kept.mse())
     assert kept.why_no_prediction() == ("no prediction yet: the first model is accepted; no "
-                                        "prediction: NaN samples in the observer window or "
+                                        "prediction: NaN or inf samples in the observer window or "
                                         "inputs")
 
 
@@ -769,6 +773,14 @@ def test_samples_fed_one_at_a_time_less_often_than_dt_are_said():
         warnings.simplefilter("error")
         whole.update(t[:S], y[:S], u[:S])
     assert "missing" not in whole.events[0] and whole.events[0]["valid"]
+
+
+def test_a_misspelled_identifier_argument_is_named():
+    """keep_histroy=False beside a config said "give either config or its settings as
+    keywords, not both": the misspelling was not named."""
+    with pytest.raises(TypeError, match=r"OnlineIdentifier\(\): unknown argument\(s\) "
+                                        r"\['keep_histroy'\]; it takes config, state, keep_history"):
+        OnlineIdentifier(_config(), keep_histroy=False)
 
 
 def test_an_all_zero_eta_is_refused():
