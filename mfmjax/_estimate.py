@@ -35,7 +35,14 @@ from ._quadrature import record_bucket
 from ._search import SearchResult, plan_search, run_plan
 from ._search._grid import CHUNK_SETTINGS, delay_edge_notes, delay_grids, grid_values, structures
 from ._selection import OBSERVER_FRACTION, HoldoutSearch, holdout_folds, holdout_search, rank_by
-from ._signals import Signals, dependent_inputs, nearly_dependent_inputs, offset_undecided, output_start
+from ._signals import (
+    Signals,
+    dependent_inputs,
+    held_inputs_note,
+    nearly_dependent_inputs,
+    offset_undecided,
+    output_start,
+)
 from ._srivc import MAX_ITER_LIMIT, SrivcFit, srivc, srivc_many
 from ._status import Status, describe
 
@@ -245,8 +252,8 @@ def estimate(
                               **grid)
         records, outs = _holdout_variants(records, sels, stages, dict(
             estimation=identify, holdout=holdout, folds=folds, **grid))
-    outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ()) + o.notes)
-            for o, r in zip(outs, records)]
+    outs = [replace_fields(o, notes=((r.offset_note,) if r.offset_note else ())
+                           + held_inputs_note(r) + o.notes) for o, r in zip(outs, records)]
     edges = [] if delays is None else delay_grids(delays)
     doubtful = {}  # warned once per batch: {first record's text: records}
     n_top = max(grid_values(n, "n"))

@@ -815,6 +815,30 @@ def _refuse_nonfinite(source: str, columns: list) -> None:
                 "samples and interpolates across them)")
 
 
+def held_inputs_note(signals) -> tuple[str, ...]:
+    """A note (or none) naming the inputs read as foh whose samples hold their value over runs
+    (at least half the steps repeat the last sample, and the level changes at least twice): a
+    PRBS, a DAC or a controller's output, held between samples, which foh reads as linear
+    between them (an SRIVC fit of such a record moved b_11 by 4.85 standard errors, status
+    "converged", nothing said; an audit of 2026-11-28)."""
+    if _b.is_traced(signals.u):
+        return ()
+    u = np.asarray(signals.u)
+    held = []
+    for k, rule in enumerate(signals.intersample):
+        d = np.diff(u[:, k])
+        changes = np.flatnonzero(d != 0)
+        if rule == "foh" and changes.size >= 2 and np.mean(d == 0) >= 0.5:
+            held.append((signals.input_names[k], float(np.median(np.diff(changes)))))
+    if not held:
+        return ()
+    return (f"the input(s) {[n for n, _ in held]} hold their value over runs of samples "
+            f"(median run {held[0][1]:g} samples) but are read as foh (linear between samples, "
+            "the default): if they were held between samples (a PRBS, a DAC, a controller's "
+            "output), declare intersample='zoh' (Signals, from_csv; --intersample zoh), else "
+            "the model is biased",)
+
+
 FROZEN_ROWS = 20  # this many repeats of a row in every column used: a frozen logger
 
 
