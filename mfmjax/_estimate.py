@@ -662,8 +662,10 @@ def _from_holdout(records, sels, *, holdout, polish, max_iter, tol, rehearsal=Fa
     for sel in sels:
         j = int(rank_by(sel.refit, "bic")[0])
         by_bic = (int(sel.refit.columns["n"][j]), [int(v) for v in sel.refit.columns["m"][j]])
-        texts.append(f"mean hold-out E over {blocks} ({holdout:.0%} of the "
-                     + ("last estimation window, " if several else "estimation data each, ")
+        each = " each" if len(sel0.folds) > 1 else ""  # ("each" of a single block misread)
+        texts.append(f"{'mean ' if each else ''}hold-out E over {blocks} ({holdout:.0%} of the "
+                     + (f"last estimation window{each}, " if several else
+                        f"estimation data{each}, ")
                      + "fitted on the rest)"
                      + ("" if several else
                         f", SRIVC structures within {HOLDOUT_TIE:.0%} of the best decided by "

@@ -1118,6 +1118,9 @@ def test_an_integrators_structure_is_chosen_on_the_held_back_data():
         est = mfmjax.estimate(sig, n=(1, 2), N=(3,), M=(3,), h=(2.0,))
     assert est.model.n == 2, est.summary()
     assert "no candidate was free of flags (an integrator, or an unstable plant)" in est.selection
+    # one held-back block: no "mean" and no "each" (it read "33% of the estimation data each")
+    assert est.selection.startswith("hold-out E over [") and \
+        "% of the estimation data, fitted on the rest)" in est.selection, est.selection
     fresh = simulated_experiment(true, dt=0.05, n_samples=1500, seed=11)
     y = np.asarray(mfmjax.simulate(true, fresh.u, dt=0.05))
     y_est = np.asarray(mfmjax.simulate(est.model, fresh.u, dt=0.05))

@@ -279,6 +279,7 @@ def test_estimate_selects_on_held_back_data_and_reports_it():
     est = mfmjax.estimate(sig, h=(2.0, 3.0), n=(1, 2, 3), N=(3, 4), M=(3, 4), folds=2)
     assert est.model.n == 2 and est.method in ("srivc", "srivc + output error")
     assert "mean hold-out E over [0, 14.95] and [30, 44.95]" in est.selection
+    assert "% of the estimation data each, fitted on the rest)" in est.selection
     assert "BIC" in est.selection
     assert est.holdout and all(math.isfinite(v) for v in est.holdout.values())
     assert "hold-out fit %" in est.summary()
