@@ -45,9 +45,12 @@ def plot_online(series: dict, models: list[dict], path, *, title: str = "", ylab
     # only what falls on the time axis (a resumed run plots its own series with every model:
     # the earlier bands were out of view but in the legend)
     right = t_end if t_end is not None else np.inf
-    if models and models[0]["sim_start"] > t0:
+    if models and models[0]["sim_start"] > t0:  # ("identifying model 1" from the record's
+        # start read as model 1's window, which the table gives, e.g. 100-500)
+        w = models[0].get("ident_window")
         ax.axvspan(t0, models[0]["sim_start"], color="#cfe8cf", lw=0,
-                   label="identifying model 1")
+                   label="no model yet" + (f" (model 1 fitted on {w[0]:g} to {w[1]:g})"
+                                           if w is not None else ""))
     shown = 0
     for i, rec in enumerate(models):
         stop = rec["sim_end"] if rec["sim_end"] is not None else t_end

@@ -799,7 +799,7 @@ def test_an_all_zero_eta_is_refused():
 
 def test_plot_online_shows_only_what_falls_on_its_time_axis(tmp_path):
     """A resumed run plots its own series with every model: the earlier models' bands (and
-    the green 'identifying model 1' band) fell outside the time axis but stayed in the
+    the green 'no model yet' band) fell outside the time axis but stayed in the
     legend."""
     from matplotlib.figure import Figure
 
@@ -812,6 +812,7 @@ def test_plot_online_shows_only_what_falls_on_its_time_axis(tmp_path):
                    operating_point_time=op)
               for k, s0, s1, op in ((1, 3000.0, 4500.0, 2750.0), (2, 4500.0, 6500.0, 2750.0),
                                     (3, 6500.0, None, 6000.0))]
+    models[0]["ident_window"] = (1000.0, 3000.0)
     seen, save = [], Figure.savefig
 
     def spy(fig, *args, **kw):
@@ -827,9 +828,12 @@ def test_plot_online_shows_only_what_falls_on_its_time_axis(tmp_path):
         plot_online({"t": whole, "y": np.sin(whole / 300), "y_pred": np.sin(whole / 300)},
                     models, tmp_path / "whole.png")
     (legend, texts), (legend_all, texts_all) = seen
-    assert "identifying model 1" not in legend and "model k predicts (band k)" in legend
+    assert not any(x.startswith("no model yet") for x in legend)
+    assert "model k predicts (band k)" in legend
     assert texts == ["2", "3", "p3"]  # model 1 and the first operating point are off the axis
-    assert "identifying model 1" in legend_all and texts_all == ["1", "2", "3", "p1", "p3"]
+    # the band before model 1 is not its identification window (the table's): said
+    assert "no model yet (model 1 fitted on 1000 to 3000)" in legend_all
+    assert texts_all == ["1", "2", "3", "p1", "p3"]
     assert (tmp_path / "resumed.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
