@@ -705,13 +705,26 @@ def _continuous_phase(ang, w, a, b) -> np.ndarray:
     2 pi to the branch nearest the sum of its factors' angles, angle(jw - z) - angle(jw - p),
     each continuous for w > 0. `np.unwrap` of samples chose the wrong branch wherever the
     phase moved by more than 180 degrees between grid points (1/(s + 1)^4 at w = 0.1, 10:
-    +22.8 degrees for -337.2). The first point keeps its principal value."""
+    +22.8 degrees for -337.2). The branch is the one continuous from w -> 0, where the phase is
+    0 for a positive DC gain and +180 degrees for a negative one (as a grid starting low shows
+    it, in python-control and MATLAB too), less 90 per net integrator: a grid starting at high
+    frequency kept its first point's principal value (1/(s + 1)^4 at w = 10 alone: +22.8
+    degrees for -337.2)."""
     b = np.trim_zeros(np.asarray(b, dtype=np.float64), "b")
-    jw = 1j * np.asarray(w)[:, None]
-    guide = (np.angle(b[-1]) + np.sum(np.angle(jw - np.roots(b[::-1])[None, :]), axis=1)
-             - np.sum(np.angle(jw - np.roots(np.asarray(a, dtype=np.float64)[::-1])[None, :]),
-                      axis=1))
-    guide = guide + 2 * np.pi * np.round((ang[0] - guide[0]) / (2 * np.pi))
+    a = np.trim_zeros(np.asarray(a, dtype=np.float64), "b")
+    zeros, poles = np.roots(b[::-1]), np.roots(a[::-1])
+
+    def factors(x):  # the sum of the factors' angles at the frequencies x > 0
+        jx = 1j * np.asarray(x)[:, None]
+        return (np.angle(b[-1]) + np.sum(np.angle(jx - zeros[None, :]), axis=1)
+                - np.sum(np.angle(jx - poles[None, :]), axis=1))
+
+    ka, kb = int(np.argmax(a != 0)), int(np.argmax(b != 0))  # integrators, differentiators
+    dc = (0.0 if b[kb] / a[ka] > 0 else np.pi) - (ka - kb) * np.pi / 2
+    roots = np.abs(np.r_[zeros, poles])
+    tiny = 1e-9 * min([float(np.min(w))] + [float(r) for r in roots if r > 0])
+    guide = factors(w)
+    guide = guide + 2 * np.pi * np.round((dc - factors([tiny])[0]) / (2 * np.pi))
     return ang + 2 * np.pi * np.round((guide - ang) / (2 * np.pi))
 
 

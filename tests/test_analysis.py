@@ -402,6 +402,19 @@ def test_phase_is_continuous_and_the_default_grid_finds_the_resonance():
     w = np.array([0.1, 10.0])
     want = -4 * np.degrees(np.arctan(w))
     np.testing.assert_allclose(mfmjax.frequency_response(four, w).phase_deg[0], want, rtol=1e-12)
+    # a grid starting at high frequency: the branch continuous from w -> 0 (it kept the first
+    # point's principal value, +22.8 for -337.2); three integrators read -270 from any grid
+    np.testing.assert_allclose(mfmjax.frequency_response(four, w[1:]).phase_deg[0], want[1:],
+                               rtol=1e-12)
+    triple = Model.from_coefficients([0.0, 0.0, 0.0, 1.0], [[1.0]])
+    for grid in ([1e-3, 1.0], [1e3]):
+        np.testing.assert_allclose(mfmjax.frequency_response(triple, np.array(grid)).phase_deg[0],
+                                   -270.0, rtol=1e-12)
+    # a negative gain starts at +180 as a low grid shows it (python-control, MATLAB), also
+    # from a high grid: -1/(s + 1) at w = 1000 reads 180 - atan(1000), not its -269.9 branch
+    neg = Model.from_coefficients([1.0, 1.0], [[-1.0]])
+    assert mfmjax.frequency_response(neg, np.array([1e3])).phase_deg[0][0] == pytest.approx(
+        180.0 - np.degrees(np.arctan(1e3)), rel=1e-12)
     q = [1.0, 0.001, 1.0]
     pairs = mfmjax.frequency_response(Model.from_coefficients(np.convolve(q, q), [[1.0]]))
     assert pairs.phase_deg[0][-1] == pytest.approx(-360.0, abs=0.01)
