@@ -324,7 +324,7 @@ def _load_signals(args, saved=None):
         if saved is not None:  # validate/report: the model's own lines
             trend = saved
             sig = trend.apply(sig, offset=bool(args.offset))
-            if trend.kind == "linear" and (args.time is None or sig.t0 < trend.t0):
+            if trend.kind == "linear" and _another_clock(args, sig):
                 # the lines are read at this file's times: from 0 under --dt (the DaISy
                 # heater's hold-out file: fit 58.3 % under --dt 2, 21.5 % under --time time)
                 print(f"warning: --detrend linear: the model's lines start at t={trend.t0:.15g} "
@@ -332,8 +332,8 @@ def _load_signals(args, saved=None):
                       f"t={sig.t0:.15g}" + (" (--dt: the first row is t=0)" if args.time is None
                                             else "") +
                       ": the result depends on where the file's times put it on those lines; "
-                      "give --time COLUMN with times on the identification record's clock, or "
-                      "use --detrend constant", file=sys.stderr)
+                      "give --time COLUMN with times on the identification record's clock (in "
+                      "both commands), or use --detrend constant", file=sys.stderr)
         elif part is None:
             sig, trend = detrend(sig, args.detrend, offset=bool(args.offset))
         else:  # the lines from the identification data only, removed from the whole record:
@@ -444,10 +444,32 @@ def _names_note(model, sig, path: str) -> None:
 
 def _record(args, sig, trend) -> dict:
     """How the identification data were read, saved with the model (`save_model`): with
-    --detrend, the lines removed (validate and report remove the same ones)."""
+    --detrend, the lines removed (validate and report remove the same ones), the file, its
+    time column (None: --dt) and first time: the clock the lines are on (`_another_clock`)."""
     out = {"dt": sig.host_dt, "detrend": getattr(args, "detrend", None),
            "columns": [sig.output_name, *sig.input_names]}  # the CSV's own names
-    return out if trend is None else {**out, "trend": trend.to_dict()}
+    if trend is None:
+        return out
+    return {**out, "trend": trend.to_dict(), "file": os.path.abspath(args.file),
+            "time": args.time, "start": float(sig.t0)}
+
+
+def _another_clock(args, sig) -> bool:
+    """Whether this file's times may not be the identification record's clock, on which the
+    saved linear lines were fitted: the same file read from another first time, or another
+    file where either command read no time column (--dt counts from 0 in each file). Two
+    time columns are trusted; a record saved before 2026-11-28 (no clock saved): --dt."""
+    with open(_model_path(args), "rb") as fh:  # load_model has read and checked it
+        saved = json.loads(fh.read().decode("utf-8")).get("record") or {}
+    if "time" not in saved:
+        return args.time is None
+    try:
+        same = os.path.samefile(saved.get("file", ""), args.file)
+    except OSError:
+        same = False
+    if same:
+        return float(sig.t0) != saved.get("start")
+    return args.time is None or saved["time"] is None
 
 
 def _record_note(path: str, args, sig) -> None:

@@ -84,7 +84,9 @@ def atomic_write(path, data: bytes) -> None:
             os.close(dfd)
 
 
-RECORD_KEYS = ("dt", "detrend", "trend", "columns")  # how the identification data were read (`save_model`)
+# how the identification data were read (`save_model`); with a trend, the clock its lines are
+# on: the file, its time column (None: a step, times from 0) and first time (the CLI's)
+RECORD_KEYS = ("dt", "detrend", "trend", "columns", "file", "time", "start")
 FIELDS = ("format", "version", "n", "m", "a", "b", "delays", "intersample", "offset", "theta", "J",
           "J_rel", "cond", "status", "output_name", "input_names", "N", "M", "h", "record",
           "covariance", "joint_covariance")  # what `save_model` writes (`Model.to_dict` and
@@ -144,7 +146,8 @@ def save_model(model: Model, path, *, covariance=None, joint_covariance=None,
             raise ValueError(f"save_model(): record must be a dict with keys from {RECORD_KEYS}: "
                              "dt a finite step > 0, detrend None, 'linear' or 'constant', "
                              f"trend Trend.to_dict() of that kind and the model's inputs, "
-                             f"columns the output's and inputs' names (got {record!r})")
+                             "columns the output's and inputs' names, file a path, time a "
+                             f"column name or None, start a finite time (got {record!r})")
         doc["record"] = {k: (float(v) if k == "dt" else v) for k, v in record.items()}
     atomic_write(path, (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode())
 
@@ -168,7 +171,13 @@ def _record_ok(record, model: Model) -> bool:
                 or ("columns" in record and not (
                     isinstance(record["columns"], list)
                     and len(record["columns"]) == model.n_inputs + 1
-                    and all(isinstance(c, str) for c in record["columns"]))))
+                    and all(isinstance(c, str) for c in record["columns"])))
+                or ("file" in record and not isinstance(record["file"], str))
+                or ("time" in record and not isinstance(record["time"], str | None))
+                or ("start" in record and not (
+                    isinstance(record["start"], int | float)
+                    and not isinstance(record["start"], bool)
+                    and math.isfinite(record["start"]))))
 
 
 def _trend_ok(trend, kind, n_inputs: int) -> bool:
@@ -284,7 +293,8 @@ def load_model(path) -> Model:
             raise ValueError(f"record must be what save_model writes: a dict with keys from "
                              f"{RECORD_KEYS}, dt a finite step > 0, detrend null, 'linear' or "
                              "'constant', trend its lines for the model's inputs, columns the "
-                             f"output's and inputs' names (got {doc['record']!r})")
+                             "output's and inputs' names, file a path, time a column name or "
+                             f"null, start a finite time (got {doc['record']!r})")
         # the unstable bit follows a (a hand-edited a kept `ok`)
         unstable = not is_stable(np.asarray(model.a))
         status = (int(model.status) & ~int(Status.UNSTABLE)) | (int(Status.UNSTABLE) * unstable)

@@ -620,10 +620,12 @@ def test_audit_messages_name_the_problem(data, fitted, tmp_path):
                                                 r"give a file name"):
         mfmjax.save_model(fitted, tmp_path)
     with pytest.raises(ValueError, match=r"save_model\(\): record must be a dict with keys "
-                                         r"from \('dt', 'detrend', 'trend', 'columns'\)"):
+                                         r"from \('dt', 'detrend', 'trend', 'columns', 'file', "
+                                         r"'time', 'start'\)"):
         mfmjax.save_model(fitted, tmp_path / "m.json", record={"dt": 1.0, "units": "s"})
     for bad in ({"dt": None}, {"dt": -1.0}, {"detrend": "cubic"}, {"columns": ["y"]},
-                {"columns": "y,u1"}):
+                {"columns": "y,u1"}, {"file": 3}, {"time": 1.0}, {"start": float("inf")},
+                {"start": "0"}):
         with pytest.raises(ValueError, match=r"save_model\(\): record must be a dict"):
             mfmjax.save_model(fitted, tmp_path / "m.json", record=bad)
     ident = mfmjax.OnlineIdentifier(OnlineConfig(dt=1.0, n_inputs=1))

@@ -305,13 +305,19 @@ def test_validate_and_report_say_when_the_columns_differ_from_the_models(csv_fil
     assert ("note: the model was identified on data read with --detrend linear (the model is "
             "for deviations from those lines); these data are read as they are: give "
             "--detrend linear as then") in capsys.readouterr().err
-    # the saved lines are read at this file's times: under --dt they start at 0, wherever the
-    # file lies on the identification record's clock (the DaISy heater's hold-out file fitted
-    # 58.3 % under --dt 2 and 21.5 % under --time time), said; on that clock, nothing
+    # the saved lines are read at this file's times: under --dt they start at 0 in each file,
+    # wherever it lies on the identification record's clock (the DaISy heater's hold-out file
+    # fitted 58.3 % under --dt 2 and 21.5 % under --time time), said; on that clock (time
+    # columns in both commands, or the same file read from the same first time), nothing
+    later = tmp_path / "later.csv"
+    rows = csv_file.read_text().splitlines()
+    later.write_text("\n".join([rows[0], *rows[1201:]]) + "\n")  # t from 12
     cols = ["--output", "temp", "--inputs", "u1,u2", "--detrend", "linear"]
-    assert main(["validate", str(detrended), str(csv_file), *cols, "--time", "t"]) == 0
-    assert "warning: --detrend linear" not in capsys.readouterr().err
-    assert main(["validate", str(detrended), str(csv_file), *cols, "--dt", "0.01"]) == 0
+    for file, clock in ((csv_file, ["--time", "t"]), (csv_file, ["--dt", "0.01"]),
+                        (later, ["--time", "t"])):
+        assert main(["validate", str(detrended), str(file), *cols, *clock]) == 0
+        assert "warning: --detrend linear" not in capsys.readouterr().err, (file, clock)
+    assert main(["validate", str(detrended), str(later), *cols, "--dt", "0.01"]) == 0
     assert ("warning: --detrend linear: the model's lines start at t=0 and are evaluated at "
             "this file's times, which start at t=0 (--dt: the first row is t=0): the result "
             "depends on") in capsys.readouterr().err
