@@ -1525,6 +1525,15 @@ class OnlineIdentifier:
                     "choice, Table 1)" if held[-1].startswith("skipped: input-output "
                                                            "correlation") else "")
             return f"no prediction yet: {held[-1]}{hint}"
+        cfg, count = self.state.config, int(self.state.n_closed)  # the state's, whole run
+        if count == 0:  # (it blamed the operating point: a 25-min record, interval=50 min)
+            return (f"no prediction yet: no interval has closed (interval={cfg.interval:g} "
+                    f"time units; the first identification needs n_start={cfg.n_start} of "
+                    "them): feed more data, or check that interval is in the data's time unit")
+        if count < cfg.n_start:  # (from the state: the events of a resumed run are its own)
+            return (f"no prediction yet: {count} interval(s) closed, and the first "
+                    f"identification needs n_start={cfg.n_start} (interval={cfg.interval:g} "
+                    "time units)")
         if not self.keep_history or self._resumed:  # no events to read: do not guess
             return ("no prediction yet (why is not known: the events are not kept with "
                     "keep_history=False or across a load)")
@@ -1538,15 +1547,6 @@ class OnlineIdentifier:
                         f"column; if the data are sampled less often than "
                         f"dt={self.state.config.dt:g}, set OnlineConfig.dt to their step"
                         if gone else "") + ")")
-        cfg = self.state.config
-        if not closed:  # (it blamed the operating point: a 25-min record, interval=50 min)
-            return (f"no prediction yet: no interval has closed (interval={cfg.interval:g} "
-                    f"time units; the first identification needs n_start={cfg.n_start} of "
-                    "them): feed more data, or check that interval is in the data's time unit")
-        if len(closed) < cfg.n_start:
-            return (f"no prediction yet: {len(closed)} interval(s) closed, and the first "
-                    f"identification needs n_start={cfg.n_start} (interval={cfg.interval:g} "
-                    "time units)")
         return ("no prediction yet: no operating point was detected (the first model is "
                 "identified at the onset of a steady run: an interval where the output and "
                 "every input vary less than steady_rel times their variance so far)")

@@ -726,6 +726,14 @@ def test_config_refuses_an_h_too_wide_for_the_first_window_and_says_why_no_predi
     quiet = OnlineIdentifier(_config(), keep_history=False)
     quiet.update(t[:3 * S], y[:3 * S], u[:3 * S])
     assert math.isnan(quiet.mse())
+    # the count of closed intervals is the state's: known without the events, and the whole
+    # run's after a resume from a state (it read this call's events: "no interval has
+    # closed" where 3 had, a review)
+    said = ("no prediction yet: 3 interval(s) closed, and the first identification needs "
+            "n_start=8 (interval=250 time units)")
+    assert quiet.why_no_prediction() == said
+    assert OnlineIdentifier(state=quiet.state).why_no_prediction() == said
+    quiet.update(t[3 * S:8 * S], y[3 * S:8 * S], u[3 * S:8 * S])
     assert quiet.why_no_prediction().startswith("no prediction yet (why is not known")
     kept = OnlineIdentifier(_config())
     kept.update(t[:S // 2], y[:S // 2], u[:S // 2])  # no interval closed: it blamed the
