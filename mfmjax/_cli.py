@@ -873,7 +873,8 @@ def _cmd_online(args):
     else:
         scope = f"{run['intervals']} intervals"
     if total["predicted"] is not None and total["count"]:  # the MSE is over these alone
-        scope += f" ({total['predicted']} of them predicted)"
+        scope += (f" ({total['predicted']} of them predicted)" if not resumed else
+                  f" ({total['predicted']} of the {total['intervals']} predicted)")
     res = {"mse": mse, "mse_scope": scope, "mse_this_call": mse_run, "models": ident.models,
            "intervals": total["intervals"]}
     why = None
@@ -891,7 +892,7 @@ def _cmd_online(args):
     if args.json:
         _print_json(res)
     else:
-        print(model_table(ident.models, end=ident._end(), unit=""))  # the CSV's own unit
+        print(model_table(ident.models, end=ident._end()))  # (no unit: the CSV's own)
         shown = "undefined (no prediction yet)" if not total["count"] else f"{mse:.6g}"
         print(f"\nmean square prediction error: {shown} over {scope}")
         if why:

@@ -1212,7 +1212,8 @@ def update(state: OnlineState, t, y, u):
             f"grid point {float(t0 + idx[j] * c.dt)!r}; " + (
                 f"t is {np.dtype(narrow).name}, whose spacing there is "
                 f"{float(np.spacing(np.asarray(t[j], narrow))):.3g}: pass the times as float64 "
-                "(rounding them in float32 cannot put them on the grid)" if narrow else
+                "(rounding them in float32 cannot put them on the grid)"
+                if narrow and off[j] <= 4 * float(np.spacing(np.asarray(t[j], narrow))) else
                 "round the times to the grid, or check dt (a logger's real dt may differ from "
                 "its nominal one)"))
     back = np.flatnonzero(np.diff(idx) <= 0)
@@ -1568,8 +1569,10 @@ class OnlineIdentifier:
             intersample=c.intersample, output_name=c.output_name, input_names=c.input_names,
         )
 
-    def table(self) -> str:
-        return model_table(self.models, end=self._end())
+    def table(self, unit: str = "") -> str:
+        """The model table (the paper's Tables 2-3 in one); `unit`: the time unit shown in
+        the window columns' headers (e.g. "s"; none by default: the data's own unit)."""
+        return model_table(self.models, end=self._end(), unit=unit)
 
     def _end(self):
         n = int(self.state.n_closed) * self.state.config.samples
@@ -1600,7 +1603,7 @@ class OnlineIdentifier:
         return float(self.state.t0) + int(self.state.n_seen) * self.state.config.dt
 
 
-def model_table(models, end=None, unit: str = "s") -> str:
+def model_table(models, end=None, unit: str = "") -> str:
     """The paper's Tables 2-3 (or 4-5) in one: windows, MF settings, orders, parameters, E.
     `unit`: the time unit in the window columns' headers ("" for none: a CSV's own unit)."""
     ident, sim = (f"ident [{unit}]", f"sim [{unit}]") if unit else ("ident", "sim")

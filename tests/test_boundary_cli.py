@@ -370,7 +370,7 @@ def test_resumed_mse_covers_the_whole_run(checkpoint_run):
     # and how many of them were predicted, which the MSE is over (it said "over 16
     # intervals" of a run predicted on 11): the same count resumed as uninterrupted
     assert res["mse_scope"] == ("the whole run: 9 intervals before the checkpoint and 11 in "
-                                "this call (12 of them predicted)")
+                                "this call (12 of the 20 predicted)")
     assert full["mse_scope"] == "20 intervals (12 of them predicted)"
     assert head["mse_scope"].startswith("9 intervals") and res["mse_this_call"] != res["mse"]
 

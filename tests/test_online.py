@@ -99,6 +99,8 @@ def test_update_rule_records_E(switching):
     for a, b in zip(ident.models, ident.models[1:]):
         assert a["sim_end"] == b["sim_start"]
     assert "E_reident" in ident.table() and "p2" in ident.table()
+    # no time unit the data may not have in the headers, unless given (they read "[s]")
+    assert "ident [s]" not in ident.table() and "ident [min]" in ident.table(unit="min")
 
 
 def test_predictions_carry_the_number_of_the_model_that_made_them(switching):
@@ -284,6 +286,11 @@ def test_update_errors():
                                          r"the times as float64"):
         mfmjax.online.update(narrow, (1e5 + 0.1 * np.arange(10)).astype(np.float32),
                              np.zeros(10), np.zeros((10, 2)))
+    # ... but float32 times off by far more than their spacing (a wrong dt) keep the dt advice
+    with pytest.raises(ValueError, match=r"-0.5 from its grid point 2.0; round the times to "
+                                         r"the grid, or check dt"):
+        mfmjax.online.update(mfmjax.online.init(_config()), np.arange(0, 30, 1.5, np.float32),
+                             np.zeros(20), np.zeros((20, 2)))
     # epoch seconds at dt = 0.1 written with 3 decimals (a CSV) miss the grid by the float's
     # rounding at 1.7e9 (2.4e-7 s > 1e-6 dt): accepted (they were refused)
     fine = mfmjax.online.init(_config(dt=0.1, interval=25.0, T_obfin=50.0, T_obinit=100.0,
