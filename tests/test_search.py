@@ -237,6 +237,12 @@ def test_exports(noisy, tmp_path):
         (dict(h=(1.0,), delays=[(0.0,), (-1.0,)]), r"delays\[1\]\[0\] must be >= 0"),
         (dict(h=(1.0,), validate=(0.0, 100.0)), "validate window"),
         (dict(h=(1.0,), chunk_size=0), "chunk_size must be an integer >= 1"),
+        # a flat list on two inputs read as one value per input ("try 0 and 0.5" as likely
+        # meant; OnlineConfig refuses a flat m too)
+        (dict(h=(1.0,), delays=(0.0, 0.5)),
+         r"delays=\[0.0, 0.5\] is a flat list; give one list per input \(2\): e.g. "
+         r"delays=\[\(0.0, 0.5\), ...\] .* or delays=\[\(0.0,\), \(0.5,\)\] for one value"),
+        (dict(h=(1.0,), m=(0, 1)), r"m=\[0, 1\] is a flat list"),
         # eta = 1 on a_3 alone (the unit-free choice for n = 3) leaves n = 2 no nonzero
         # entry: its candidates came back flagged (nonfinite, a_n_zero, unstable), unsaid
         (dict(h=(1.0,), n=(2, 3), m=[(0,), (0,)], eta=[0, 0, 0, 1, 0, 0, 0]),
@@ -285,6 +291,11 @@ def test_equation_error_only_mode(noisy):
     kw = dict(n=(1, 2, 3), N=(4,), M=(4,), h=(1.5, 1.7), m=[(0, 1), (0,)], chunk_size=1)
     full = mfmjax.search(noisy, score="J", **kw)
     fast = mfmjax.search(noisy, score="J", simulate=False, **kw)
+    for extra in (dict(validate=(1.0, 10.0)), dict(observer_window=1.0)):  # (ignored, unsaid)
+        with pytest.raises(ValueError, match=r"search\(\): validate= and observer_window= set "
+                                             r"where E and fit are scored, which simulate=False "
+                                             r"skips"):
+            mfmjax.search(noisy, score="J", simulate=False, **kw, **extra)
     # the same solves in two programs (with and without the validation): XLA may order the
     # offset's centring sums (`signal_levels`) differently in each, so they agree to rounding
     # (7e-16 relative seen; 1e-12 as test_one_chunk_J_search_is_compiled_for_compile_time),
