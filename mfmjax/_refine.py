@@ -42,6 +42,7 @@ from ._quadrature import kernel_bucket, kernel_length
 from ._signals import Signals
 from ._simulate import forced_response
 from ._solve import default_eta
+from ._status import describe
 from ._structure import Structure
 
 SETTINGS = ("h", "N", "M", "delays")
@@ -401,7 +402,14 @@ def refine(
         model, what = (start, "the start") if same or better else (
             fresh, "the start's settings identified on these signals (the start differs: "
                    "identified on other data, another window or another eta)")
-    if code != "successful":
+    if not (math.isfinite(path[0]) or math.isfinite(best_f)):  # nothing to refine from (it
+        # said "not converged (max_steps_reached)" of a start flagged no_excitation)
+        warnings.warn(f"refine(): the start scores {score} = inf on these signals (status "
+                      f"{describe(int(fresh.status))}: a flagged model, or one whose simulation "
+                      "failed), and so did every point tried: nothing to refine; returning "
+                      f"{what} (check the data, e.g. an input that is constant, and the start)",
+                      stacklevel=2)
+    elif code != "successful":
         warnings.warn(f"refine(): not converged ({code} after {steps} steps); returning "
                       f"{what if failed else 'the best point of the path'} (see "
                       "Refinement.converged)", stacklevel=2)

@@ -116,6 +116,26 @@ def test_refine_failure_returns_start(noisy):
         mfmjax.refine(sig, start, vary=("h", "N"), bounds={"N": (0.5, 12)})
 
 
+def test_refine_from_a_flagged_start_says_there_is_nothing_to_refine(noisy):
+    """A start flagged no_excitation (an input constant over the record) scores inf, as every
+    point tried: refine said "not converged (max_steps_reached after 3 steps)", as if more
+    steps would help (an audit of 2026-11-28)."""
+    _, sig, _ = noisy
+    u = np.asarray(sig.u).copy()
+    u[:, 1] = 0.5
+    flat = Signals(np.asarray(sig.y), u, dt=2.5, intersample=sig.intersample, offset=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        start = mfmjax.identify(flat, ST, ModulatingFunction(3, 4, 200.0))
+    assert int(start.status) & mfmjax.Status.NO_EXCITATION
+    with pytest.warns(UserWarning, match=r"refine\(\): the start scores E = inf on these "
+                                         r"signals \(status .*no_excitation.*nothing to refine; "
+                                         r"returning the start") as got:
+        r = mfmjax.refine(flat, start, vary=("h",), max_steps=3)
+    assert r.model is start and not r.improved
+    assert not any("not converged" in str(w.message) for w in got)
+
+
 def test_refine_leaves_a_bound_it_starts_on_and_scores_the_model_it_returns(noisy):
     """A start on its box's edge (h = 200 in (200, 400) here; a delay of 0 or N = n, the
     defaults' lower bounds, are the common case): the sigmoid's slope there, the start clipped
