@@ -231,8 +231,10 @@ def refine(
     and the path's best is compared with the start's own score.
 
     `start` may be a `SearchResult`: its best `top` candidates are refined and the refinement
-    with the lowest score is returned; their kernels are sized for the largest of their boxes
-    (h + delays), so candidates of one structure share one compiled program. A refinement
+    with the lowest score is returned, scored on the search's `validate` window and
+    `observer_window` where none is given (its table's E is of them); their kernels are
+    sized for the largest of their boxes (h + delays), so candidates of one structure share
+    one compiled program. A refinement
     that fails (solver error, non-finite score, or no improvement) returns the starting
     model, with the solver's code in `result`; where the start is not the model its settings
     give on these signals (identified on other data), that model instead, whose score
@@ -260,6 +262,10 @@ def refine(
                           "(its E on a validation window inside them is then no held-out "
                           "score); give refine the identification data (signals.window(t0, "
                           "t1)) to keep it apart", stacklevel=2)
+        # scored where the search scored (its E, and the table's, were of its validate
+        # window; refine scored the whole record: value and the table's E disagreed)
+        validate = start.validate if validate is None else validate
+        observer_window = start.observer_window if observer_window is None else observer_window
         starts = [start.best(i) for i in range(min(top, len(start)))]
         span = max(_kernel_span(_box(signals, s, bounds), vary, s) for s in starts)
         runs = []

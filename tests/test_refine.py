@@ -353,6 +353,15 @@ def test_refine_of_a_windowed_search_says_it_identifies_on_all_data():
     # runs' pointed into _refine.py)
     assert any("not converged" in str(w.message) for w in said)
     assert {w.filename for w in said} == {__file__}, [(w.filename, w.lineno) for w in said]
+    # without validate=, refine scores on the search's window (it scored the whole record:
+    # value and start_value could not be compared with the table's E; an audit)
+    assert sr.validate == (30.0, 59.95) and sr.to_dict()["validate"] == [30.0, 59.95]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        given = mfmjax.refine(sig, sr, top=1, vary=("h",), validate=(30.0, 59.95), max_steps=0)
+        inherited = mfmjax.refine(sig, sr, top=1, vary=("h",), max_steps=0)
+    assert inherited.start_value == given.start_value
+    assert inherited.start_value == pytest.approx(float(sr.row(0)["E"]), rel=1e-9)
 
 
 def test_refine_never_returns_a_model_worse_than_its_start(noisy):

@@ -39,6 +39,10 @@ class SearchResult(eqx.Module):
     compile_s: float = eqx.field(static=True)
     run_s: float = eqx.field(static=True)
     identify: tuple | None = eqx.field(static=True, default=None)  # `search`'s identify= windows
+    # `search`'s validate= window and observer_window (E, fit, AIC and BIC are of them); refine
+    # of this result scores there unless told otherwise
+    validate: tuple | None = eqx.field(static=True, default=None)
+    observer_window: float | None = eqx.field(static=True, default=None)
 
     def __len__(self) -> int:
         return int(self.rank.shape[0])
@@ -132,7 +136,11 @@ class SearchResult(eqx.Module):
         return {"score": self.score, "candidates": len(self), "compile_s": self.compile_s,
                 "run_s": self.run_s, "output_name": self.output_name,
                 "input_names": list(self.input_names), "intersample": list(self.intersample),
-                "has_offset": bool(self.has_offset), "ranked": rows}
+                "has_offset": bool(self.has_offset),
+                # the windows E, fit, AIC and BIC refer to (None: the defaults)
+                "identify": None if self.identify is None else [list(w) for w in self.identify],
+                "validate": None if self.validate is None else list(self.validate),
+                "observer_window": self.observer_window, "ranked": rows}
 
     def to_json(self, path=None, top: int | None = None) -> str:
         text = json.dumps(self.to_dict(top))

@@ -94,6 +94,10 @@ def search(
     if identify is not None:  # `refine` of this result says that it re-identifies on all data
         res = replace_fields(res, identify=tuple((float(a), float(b))
                                                  for a, b in window_list(identify)))
+    if validate is not None or observer_window is not None:  # `refine` scores there too
+        res = replace_fields(res, validate=None if validate is None else (
+            float(validate[0]), float(validate[1])), observer_window=None if
+            observer_window is None else float(observer_window))
     _doubtful_best(res, delays)
     if not np.any(res.columns["status"] & Status.ILL_CONDITIONED):  # `collect` checked them
         return res
