@@ -411,11 +411,14 @@ def test_table_and_to_dict_check_top(clean):
                             (-1, ValueError, "must be an integer >= 1 (got top=-1)"),
                             (1.5, ValueError, "must be an integer (got top=1.5)"),
                             (True, TypeError, "top"), ("3", TypeError, "top")):
-        for fn in (res.table, res.to_dict, lambda t: res.to_json(top=t)):
-            with pytest.raises(kind, match=r"SearchResult\.(table|to_dict)\(\): top "
+        for name, fn in (("table", res.table), ("to_dict", res.to_dict),
+                         ("to_json", lambda t: res.to_json(top=t))):  # (to_json said to_dict)
+            with pytest.raises(kind, match=rf"SearchResult\.{name}\(\): top "
                                + re.escape(said) if kind is ValueError else said):
                 fn(top)
     assert len(res.table(2).splitlines()) == 3 and len(res.to_dict(2)["ranked"]) == 2
+    # None: every candidate, as to_dict(top=None) (it raised a bare TypeError)
+    assert len(res.table(None).splitlines()) == len(res) + 1
 
 
 def _level_record(T=2000, seed=1):

@@ -45,7 +45,7 @@ def delay_edge_notes(delays, input_names, grid: list, fitted=None) -> tuple:
             name = input_names[k] if input_names else f"u{k + 1}"
             out.append(f"the delay of {name!r} ({d:g}) is the {side} of its grid "
                        f"({lo:g}..{hi:g}): the best delay may lie beyond it, and the model "
-                       "and its standard errors are then wrong; widen delays= to check"
+                       "(and any standard errors) are then wrong; widen delays= to check"
                        if f is None else
                        f"the delay of {name!r} was the {side} of its grid ({lo:g}..{hi:g}), "
                        f"{d:g}, and output error moved it beyond, to {f:g}: the structure and "
@@ -289,7 +289,9 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     eta = jax.device_put(default_eta(p, signals.offset)) if eta is None else jnp.asarray(
         eta, dtype=jnp.float64)
     if eta.shape != (p,):
-        raise ValueError(f"search(): eta must have {p} entries (padded layout)")
+        raise ValueError(f"search(): eta must have {p} entries (padded layout: a_0..a_{n_max}, "
+                         f"each input's b_k0..b_km with m = {list(m_max)}"
+                         + (", the offset" if signals.offset else "") + f"), got {eta.size}")
     check_eta_reaches("search", np.asarray(eta), structs, signals.offset)
     # moment sources and the Legendre coefficients of every column for every (N, M)
     sources = [("y", -1, signals.output_rule)]

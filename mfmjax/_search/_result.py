@@ -52,7 +52,7 @@ class SearchResult(eqx.Module):
         J of eq. 8)."""
         from .._boundary import check_rank
 
-        return self._row(check_rank("row", i, len(self)))
+        return self._row(check_rank("SearchResult.row", i, len(self)))
 
     def _row(self, i: int) -> dict:
         c, j = self.columns, int(self.rank[i])
@@ -85,7 +85,7 @@ class SearchResult(eqx.Module):
         them on the host, as `estimate` does with hundreds of candidates)."""
         from .._boundary import check_rank
 
-        i = check_rank("best", i, len(self))
+        i = check_rank("SearchResult.best", i, len(self))
         r = self._row(i)
         c, j = self.columns, int(self.rank[i])
         structure = Structure(r["n"], r["m"])
@@ -110,16 +110,17 @@ class SearchResult(eqx.Module):
             input_names=self.input_names,
         )
 
-    def table(self, top: int = 10) -> str:
-        """Readable table of the best `top` candidates (a hold-out search, `estimate`'s: its
-        held-out E and fit %, which it is ranked by, in place of the in-sample ones)."""
+    def table(self, top: int | None = 10) -> str:
+        """Readable table of the best `top` candidates (None: all; a hold-out search,
+        `estimate`'s: its held-out E and fit %, which it is ranked by, in place of the
+        in-sample ones)."""
         held = HELD in self.columns
         E, fit = ("E_holdout", "fit_holdout") if held else ("E", "fit")
         head = (f"{'rank':>4} {'n':>2} {'m':>8} {'N':>4} {'M':>4} {'h':>9} {'delays':>14} "
                 f"{'J':>10} {'E held-out' if held else 'E':>11} "
                 f"{'fit% h-o' if held else 'fit%':>8} {'aic':>10} {'bic':>10}  status")
         lines = [head]
-        for i in range(min(_top("table", top), len(self))):
+        for i in range(len(self) if top is None else min(_top("table", top), len(self))):
             r = self._row(i)
             lines.append(
                 f"{r['rank']:>4} {r['n']:>2} {','.join(map(str, r['m'])):>8} {r['N']:>4} "
@@ -129,9 +130,9 @@ class SearchResult(eqx.Module):
             )
         return "\n".join(lines)
 
-    def to_dict(self, top: int | None = None) -> dict:
+    def to_dict(self, top: int | None = None, *, _fn: str = "to_dict") -> dict:
         rows = [self._row(i) for i in range(len(self) if top is None
-                                            else min(_top("to_dict", top), len(self)))]
+                                            else min(_top(_fn, top), len(self)))]
         # the labels the rows' delays, b and offset refer to (a saved table named no column)
         return {"score": self.score, "candidates": len(self), "compile_s": self.compile_s,
                 "run_s": self.run_s, "output_name": self.output_name,
@@ -143,7 +144,7 @@ class SearchResult(eqx.Module):
                 "observer_window": self.observer_window, "ranked": rows}
 
     def to_json(self, path=None, top: int | None = None) -> str:
-        text = json.dumps(self.to_dict(top))
+        text = json.dumps(self.to_dict(top, _fn="to_json"))
         if path is not None:  # a temporary file renamed over `path`, as every file mfmjax writes
             from .._persist import atomic_write
 
