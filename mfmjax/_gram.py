@@ -130,8 +130,9 @@ def modulated_signals(
 
 def signal_levels(signals: Signals, inside=None):
     r"""(K + 1,) the constants removed from the output and from each input before they are
-    modulated when the model has an offset term (their means; no gradient, any constant is
-    exact): with the offset column in the model, $y = y' + c_y$, $u_k = u_k' + c_k$ only move
+    modulated when the model has an offset term (their means, with their gradient: any
+    constant is exact in value up to the quadrature of non-integer N, M): with the offset
+    column in the model, $y = y' + c_y$, $u_k = u_k' + c_k$ only move
     the offset ($\theta_{off}' = \theta_{off} - c_y a_0 + \sum_k c_k b_{k0}$, `level_vector`),
     and the Gram of the centred columns keeps the signals' variation: with a level of 1e4
     its $y_0$, $u_{k0}$ and offset columns were collinear to 1e-8 and the solve returned
@@ -144,7 +145,9 @@ def signal_levels(signals: Signals, inside=None):
     else:
         w = inside.astype(jnp.float64) / jnp.maximum(jnp.sum(inside), 1)
         means = jnp.concatenate([(w @ signals.y)[None], w @ signals.u])
-    return jax.lax.stop_gradient(means)
+    return means  # (its gradient counts: a stop_gradient here was off by 3.4e-4 where the
+    # value is level-free to 1.3e-8, at non-integer N, M, whose quadrature of phi^(i) does not
+    # sum to exactly zero; an audit of 2026-11-28)
 
 
 def first_position(h, delays, dt):

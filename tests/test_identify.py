@@ -284,6 +284,28 @@ def test_grad_in_h_equals_finite_differences():
     assert float(jax.jit(jax.grad(a0))(h0)) == pytest.approx(g, rel=1e-12)
 
 
+def test_grad_of_the_offset_in_the_data_counts_the_centring_levels():
+    """The centring levels (`signal_levels`) carried no gradient, as if a constant were exact:
+    at non-integer N, M it is not quite (the quadrature of phi^(i) does not sum to zero), and
+    d offset / dy along ones came out 6.33641e-5 for 6.33633e-5 (an audit of 2026-11-28).
+    The offset is affine in a constant added to y, so the central difference has no
+    truncation error; its rounding, eps |offset| / step, is below 1e-10 relative here."""
+    true = paper_table3_model1()
+    clean = simulated_experiment(true, dt=2.5, n_samples=800, x0=[0.0, 0.0], seed=0)
+    y = np.asarray(clean.y) + 0.1 * np.std(clean.y) * np.random.default_rng(0).standard_normal(800)
+    st, mf = Structure(2, (0, 0)), ModulatingFunction(2.5, 3.3, 201.3)
+
+    def offset(yy):
+        sig = Signals(yy, clean.u, dt=2.5, intersample=clean.intersample, offset=True)
+        return mfmjax.identify(sig, st, mf).offset
+
+    ones, step = np.ones(800), 1e-3
+    g = float(jax.jvp(offset, (jnp.asarray(y),), (jnp.asarray(ones),))[1])
+    fd = (float(offset(jnp.asarray(y + step * ones))) - float(offset(jnp.asarray(y - step * ones)))
+          ) / (2 * step)
+    assert g == pytest.approx(fd, rel=1e-8)
+
+
 def test_settings_are_read_only_copies():
     """A concrete h is kept as a read-only NumPy copy (no device transfer per setting), and
     the model stores N, M and h the same way: changing the caller's array afterwards changes
