@@ -226,6 +226,10 @@ class OnlineConfig(eqx.Module):
                   if m is not None else tuple((0, 1) for _ in range(K)))
         if len(self.m) != K:
             raise ValueError(f"OnlineConfig(): m needs one list of orders per input ({K})")
+        if not structures(self.n, self.m, K):  # (accepted; nothing to identify)
+            raise ValueError(f"OnlineConfig(): no structure in n={list(self.n)}, m="
+                             f"{[list(mk) for mk in self.m]}: every numerator order must be "
+                             "at most n (m_k <= n); lower m or raise n")
         self.N = tuple(float(v) for v in _b.integers(fn, "N", N, lo=1, hi=19))
         self.M = tuple(float(v) for v in _b.integers(fn, "M", M, lo=1, hi=19))
         if not any(a >= min(self.n) and b >= min(self.n) for a in self.N for b in self.M):

@@ -816,27 +816,33 @@ def _refuse_nonfinite(source: str, columns: list) -> None:
 
 
 def held_inputs_note(signals) -> tuple[str, ...]:
-    """A note (or none) naming the inputs read as foh whose samples hold their value over runs
-    (at least half the steps repeat the last sample, and the level changes at least twice): a
-    PRBS, a DAC or a controller's output, held between samples, which foh reads as linear
-    between them (an SRIVC fit of such a record moved b_11 by 4.85 standard errors, status
-    "converged", nothing said; an audit of 2026-11-28)."""
+    """A note (or none) naming the inputs read as foh (not smooth) that switch between levels:
+    at least half the steps repeat the last sample and the jumps are a tenth of the range or
+    more (a quantised sensor's are a quantum), or two or three levels only (a PRBS clocked
+    every sample), with two changes or more: a PRBS, a DAC or a controller's output, held
+    between samples, which foh reads as linear between them (an SRIVC fit of such a record
+    moved b_11 by 4.85 standard errors, status "converged", nothing said; an audit of
+    2026-11-28)."""
     if _b.is_traced(signals.u):
         return ()
     u = np.asarray(signals.u)
     held = []
-    for k, rule in enumerate(signals.intersample):
-        d = np.diff(u[:, k])
+    for k, (rule, smooth) in enumerate(zip(signals.intersample, signals.smooth)):
+        x = u[:, k]
+        d = np.diff(x)
         changes = np.flatnonzero(d != 0)
-        if rule == "foh" and changes.size >= 2 and np.mean(d == 0) >= 0.5:
-            held.append((signals.input_names[k], float(np.median(np.diff(changes)))))
+        if rule != "foh" or smooth or changes.size < 2:
+            continue
+        runs = (np.mean(d == 0) >= 0.5  # runs, by jumps of a tenth of the range or more (a
+                and np.median(np.abs(d[changes])) >= 0.1 * np.ptp(x))  # quantised sensor's
+        if runs or np.unique(x).size <= 3:  # are a quantum); a PRBS clocked every sample:
+            held.append(signals.input_names[k])  # two levels
     if not held:
         return ()
-    return (f"the input(s) {[n for n, _ in held]} hold their value over runs of samples "
-            f"(median run {held[0][1]:g} samples) but are read as foh (linear between samples, "
-            "the default): if they were held between samples (a PRBS, a DAC, a controller's "
-            "output), declare intersample='zoh' (Signals, from_csv; --intersample zoh), else "
-            "the model is biased",)
+    return (f"the input(s) {held} switch between levels (runs of equal samples, or two or three "
+            "levels) but are read as foh (linear between samples): if they were held between "
+            "samples (a PRBS, a DAC, a controller's output), declare intersample='zoh' "
+            "(Signals, from_csv; --intersample zoh), else the model is biased",)
 
 
 FROZEN_ROWS = 20  # this many repeats of a row in every column used: a frozen logger

@@ -1167,5 +1167,6 @@ def test_estimate_says_when_its_held_back_data_cannot_judge_it():
         warnings.simplefilter("ignore")
         foh = mfmjax.estimate(record(u1, Model.from_coefficients([2.0, 3.0, 1.0], [[2.0]])),
                               **grid)
-    assert any(n.startswith("the input(s) ['u1'] hold their value over runs of samples (median "
-                            "run 20 samples) but are read as foh") for n in foh.notes), foh.notes
+    assert any(n.startswith("the input(s) ['u1'] switch between levels (runs of equal "
+                            "samples, or two or three levels) but are read as foh")
+               for n in foh.notes), foh.notes

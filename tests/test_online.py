@@ -266,6 +266,9 @@ def test_functional_api_state_is_a_pytree():
         (dict(h=(600.0,)), "half the re-identification window"),
         (dict(delays=(1.0,)), "delays needs one entry"),
         (dict(steady_var=(1.0,)), "steady_var"),
+        # no structure (m above n): accepted (max() of an empty list with an eta)
+        (dict(n=(1,), m=[[2], [2]]), r"no structure in n=\[1\], m=\[\[2\], \[2\]\]: every "
+                                     r"numerator order must be at most n"),
     ],
 )
 def test_config_errors(kw, match):

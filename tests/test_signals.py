@@ -461,3 +461,25 @@ def test_an_input_named_twice_is_refused():
         with pytest.raises(ValueError, match=r"input_names has \['a'\] more than once; name "
                                              "each input once"):
             build()
+
+
+def test_held_inputs_read_as_foh_are_named_and_sensors_are_not():
+    """`held_inputs_note` (estimate's notes): a PRBS held over runs, and one clocked every
+    sample (two levels, half its steps repeat), read as foh; not a quantised smooth sensor
+    (runs, but jumps of one quantum), a smooth input, one read as zoh, or a single step."""
+    from mfmjax._signals import held_inputs_note
+
+    rng = np.random.default_rng(0)
+    t = np.arange(2000) * 0.05
+    runs = np.repeat(rng.choice([-1.0, 1.0], 250), 8)
+    clocked = rng.choice([-1.0, 1.0], 2000)
+    sensor = np.round(np.sin(0.3 * t), 1)  # 0.1 resolution: runs of equal samples
+    step = (t > 10).astype(float)
+    y = np.sin(t) + 0.1 * rng.standard_normal(2000)
+    sig = Signals(y, np.column_stack([runs, clocked, sensor, step]), dt=0.05,
+                  input_names=["prbs", "fast", "sensor", "step"])
+    note, = held_inputs_note(sig)
+    assert note.startswith("the input(s) ['prbs', 'fast'] switch between levels"), note
+    assert held_inputs_note(Signals(y, np.column_stack([runs, clocked]), dt=0.05,
+                                    intersample="zoh")) == ()
+    assert held_inputs_note(Signals(y, runs, dt=0.05, smooth=True)) == ()

@@ -372,6 +372,8 @@ def check_eta_reaches(fn: str, eta: np.ndarray, structs, offset: bool) -> None:
     = 1 (eq. 11) has no solution there, and its candidates came back flagged (nonfinite,
     a_n_zero, unstable), unsaid; the on-line identifier then never chose that order (eta = 1
     on a_3 alone with n = (2, 3): every model third order)."""
+    if not structs:  # (the caller refuses an empty grid in its own words)
+        return
     n_max = max(s[0] for s in structs)
     m_max = tuple(max(s[1][k] for s in structs) for k in range(len(structs[0][1])))
     if eta.shape != (len(_mask(structs[0], n_max, m_max, offset)),):
