@@ -1184,7 +1184,7 @@ def _cmd_validate(args):
     import mfmjax
 
     model = mfmjax.load_model(_model_path(args))
-    sig = _load_signals(args, _saved_lines(_model_path(args), args))[0]
+    sig, trend = _load_signals(args, _saved_lines(_model_path(args), args))
     window = _record_window(args.window, "window", sig) if args.window else None
     ob = _observer_window(args.observer_window, window or _whole(sig), sig,
                           window and "--window")
@@ -1201,7 +1201,8 @@ def _cmd_validate(args):
         res["fit_note"] = (f"undefined: the measured {sig.output_name} is constant on the "
                            "window, and fit % is relative to its variation about the mean")
     if args.plot:
-        _plot_validation(sig, k0, y, np.asarray(obs.y_sim), fit, args.plot)
+        _plot_validation(sig, k0, y, np.asarray(obs.y_sim), fit, args.plot,
+                         _plotted_name(sig.output_name, trend))
         res["plot"] = args.plot
     if args.json:
         _print_json(res)
@@ -1216,7 +1217,16 @@ def _cmd_validate(args):
     _record_note(_model_path(args), args, sig)
 
 
-def _plot_validation(sig, k0, y, y_sim, fit, path):
+def _plotted_name(name: str, trend) -> str:
+    """The output's name in a figure: with --detrend, as the deviation from the removed line
+    it is (compare.png read "T_degC" over -70..0 for a plate near 140 degC)."""
+    if trend is None:
+        return name
+    line = f"{float(trend.y_level):.6g}" if trend.kind == "constant" else "its line"
+    return f"{name} - {line} (deviation)"
+
+
+def _plot_validation(sig, k0, y, y_sim, fit, path, name):
     try:
         import matplotlib
 
@@ -1226,11 +1236,11 @@ def _plot_validation(sig, k0, y, y_sim, fit, path):
         raise _UserError("--plot needs matplotlib: pip install 'mfmjax[plot]'") from None
     t = sig.t0 + sig.dt * (k0 + np.arange(len(y)))
     fig, ax = plt.subplots(figsize=(8, 3.5), dpi=100)
-    ax.plot(t, y, lw=1.2, label=f"measured {sig.output_name}")
+    ax.plot(t, y, lw=1.2, label=f"measured {name}")
     label = "fit undefined" if fit is None else f"fit {fit:.1f} %"
     ax.plot(t, y_sim, lw=1.0, ls="--", label=f"simulated ({label})")
     ax.set_xlabel("time")
-    ax.set_ylabel(sig.output_name)
+    ax.set_ylabel(name)
     ax.legend(loc="best")
     fig.tight_layout()
     fig.savefig(path)
@@ -1255,9 +1265,7 @@ def _cmd_report(args):
     res = an.residuals(model, sig, window, observer_window=ob, lags=args.lags)
     cmp = an.compare(model, sig, window, observer_window=ob)
     if trend is not None:  # the curves are deviations from the removed line: said on the axis
-        # (compare.png read "T_degC" over -70..0 for a plate near 140 degC)
-        line = (f"{float(trend.y_level):.6g}" if trend.kind == "constant" else "its line")
-        cmp = dataclasses.replace(cmp, output_name=f"{cmp.output_name} - {line} (deviation)")
+        cmp = dataclasses.replace(cmp, output_name=_plotted_name(cmp.output_name, trend))
     step = an.step_response(model, covariance=cov)
     bode = an.frequency_response(model, covariance=cov)
     os.makedirs(args.o, exist_ok=True)

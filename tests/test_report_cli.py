@@ -154,7 +154,7 @@ def test_search_estimate_save_keeps_the_covariance_for_report(files, capsys):
     assert "the fitted delays' uncertainty included" in capsys.readouterr().out
 
 
-def test_report_of_detrended_data_says_its_curves_are_deviations(files, capsys):
+def test_report_of_detrended_data_says_its_curves_are_deviations(files, capsys, monkeypatch):
     """With --detrend, compare.png plots deviations from the removed line but read as the
     signal itself ("T_degC" over -70..0 for a plate near 140 degC: a DaISy heater report);
     the output's name now says what is plotted, in the figure and the summary."""
@@ -171,6 +171,21 @@ def test_report_of_detrended_data_says_its_curves_are_deviations(files, capsys):
                  "constant", "-o", str(out)]) == 0
     assert f"compare temp - {float(level):.6g} (deviation) on " in capsys.readouterr().out
     _png(out / "compare.png")
+    # and validate --plot, which plotted the same deviations as "measured temp" (a review)
+    from matplotlib.figure import Figure
+
+    labels, save = [], Figure.savefig
+
+    def saved_fig(fig, *a, **k):
+        labels.append([(ax.get_ylabel(), [t.get_text() for t in ax.get_legend().get_texts()])
+                       for ax in fig.axes])
+        return save(fig, *a, **k)
+
+    monkeypatch.setattr(Figure, "savefig", saved_fig)
+    assert main(["validate", str(saved), str(folder / "data.csv"), *ARGS, "--detrend",
+                 "constant", "--plot", str(folder / "dev.png")]) == 0
+    name = f"temp - {float(level):.6g} (deviation)"
+    assert labels[0][0][0] == name and labels[0][0][1][0] == f"measured {name}", labels
 
 
 def test_cli_warnings_spell_windows_as_the_commands_options(files, capsys):
