@@ -78,7 +78,8 @@ def _tuned(make, fun, jitkwargs, options=None):
             return _executables.call(tuned, fun, options, args, kwargs, filtered=filtered)
         return tuned(*args, **kwargs)
 
-    call.lower = tuned.lower  # the top-level program
+    call.lower = lambda *a, **k: (tuned if _on_cpu() else plain).lower(*a, **k)  # the top
+    # level's program (on a GPU, lowering with the CPU options failed at compile)
     if hasattr(tuned, "_cached"):
         call._cached = tuned._cached
     return call

@@ -545,6 +545,7 @@ def test_programs_on_another_backend_compile_with_xla_defaults(monkeypatch):
     monkeypatch.setattr(j.jax, "default_backend", lambda: "gpu")
     out = np.asarray(f(jnp.ones(3)))
     assert f._cached._cache_size() == 0  # the program with CPU options was not compiled
+    assert f.lower(jnp.ones(3)).lowered._lowering._compiler_options_kvs == ()  # nor lowered
     assert np.array_equal(out, np.full(3, 2.0 * np.sin(1.0)))
     monkeypatch.setattr(j.jax, "default_backend", lambda: "cpu")
     assert np.array_equal(np.asarray(f(jnp.ones(3))), out)
