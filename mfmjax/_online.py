@@ -1530,6 +1530,16 @@ class OnlineIdentifier:
                     "choice, Table 1)" if held[-1].startswith("skipped: input-output "
                                                            "correlation") else "")
             return f"no prediction yet: {held[-1]}{hint}"
+        closed = [e for e in self.events if "valid" in e]
+        if closed and not any(e["valid"] for e in closed):  # (it blamed the operating point)
+            gone = sum(e.get("missing", 0) for e in closed)
+            S = self.state.config.samples
+            return (f"no prediction yet: every interval so far ({len(closed)}) was invalid "
+                    "(NaN, inf or missing samples" + (
+                        f": {gone} of {len(closed) * S} samples never fed, or NaN in every "
+                        f"column; if the data are sampled less often than "
+                        f"dt={self.state.config.dt:g}, set OnlineConfig.dt to their step"
+                        if gone else "") + ")")
         cfg, count = self.state.config, int(self.state.n_closed)  # the state's, whole run
         if count == 0:  # (it blamed the operating point: a 25-min record, interval=50 min)
             return (f"no prediction yet: no interval has closed (interval={cfg.interval:g} "
@@ -1542,16 +1552,6 @@ class OnlineIdentifier:
         if not self.keep_history or self._resumed:  # no events to read: do not guess
             return ("no prediction yet (why is not known: the events are not kept with "
                     "keep_history=False or across a load)")
-        closed = [e for e in self.events if "valid" in e]
-        if closed and not any(e["valid"] for e in closed):  # (it blamed the operating point)
-            gone = sum(e.get("missing", 0) for e in closed)
-            S = self.state.config.samples
-            return (f"no prediction yet: every interval so far ({len(closed)}) was invalid "
-                    "(NaN, inf or missing samples" + (
-                        f": {gone} of {len(closed) * S} samples never fed, or NaN in every "
-                        f"column; if the data are sampled less often than "
-                        f"dt={self.state.config.dt:g}, set OnlineConfig.dt to their step"
-                        if gone else "") + ")")
         return ("no prediction yet: no operating point was detected (the first model is "
                 "identified at the onset of a steady run: an interval where the output and "
                 "every input vary less than steady_rel times their variance so far)")

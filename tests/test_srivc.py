@@ -261,10 +261,11 @@ def test_list_of_records_equals_one_at_a_time():
     lifted = Signals(np.asarray(sigs[1].y) + 100.0, sigs[1].u, dt=DT, intersample=MODES,
                      offset=True)
     with pytest.warns(UserWarning, match=r"srivc\(\): 1 of 3 records do not start at rest "
-                      r"\(records \[1\]; record 1: y starts at 10\d"):  # (not converged)
+                      r"\(records \[1\]; record 1: y starts at (99\.9|10\d)"):  # (not
+        # converged: the start read from the first samples' line, 100 give or take the noise)
         mfmjax.srivc([sigs[0], lifted, sigs[2]], starts[:3])
     with pytest.warns(UserWarning, match=r"the filters start from rest at the first sample, "
-                      r"and the signals do not \(y starts at 100"):
+                      r"and the signals do not \(y starts at (99\.9|10\d)"):
         mfmjax.srivc(lifted, starts[1])
     short = Signals(np.asarray(sigs[0].y)[:300], np.asarray(sigs[0].u)[:300], dt=DT,
                     intersample=MODES, offset=True)
