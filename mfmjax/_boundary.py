@@ -374,6 +374,23 @@ def _grid_numbers(fn, name, value, **kw):
     return numbers_(fn, name, value, **kw)
 
 
+def per_input_lists(fn: str, name: str, value, K: int) -> None:
+    """Refuse a flat list of several numbers for `m` or `delays`: one list per input is the
+    form, and delays=(0, 5) on two inputs read as 0 on one and 5 on the other, where "try 0
+    and 5" was as likely meant (on one input it was refused by count, the fix unsaid)."""
+    if not isinstance(value, (list, tuple)):
+        return  # (refused as a non-sequence by the caller)
+    if len(value) > 1 and all(np.ndim(v) == 0 and not isinstance(v, (str, bytes))
+                              for v in value):
+        flat = [v.item() if hasattr(v, "item") else v for v in value]
+        raise ValueError(
+            f"{fn}(): {name}={flat} is a flat list; give one list per input ({K}): e.g. "
+            f"{name}=[{tuple(flat)}{', ...' if K > 1 else ''}] to try "
+            f"{' and '.join(map(str, flat))} on the first input"
+            + (f", or {name}={[(v,) for v in flat]} for one value per input" if len(flat) == K
+               else ""))
+
+
 def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_window, eta,
                  chunk_size, simulate, progress, identify=None, fn: str = "search") -> None:
     """search() (or `fn`, e.g. estimate, which checks its grid as search does): every grid
@@ -391,6 +408,8 @@ def check_search(signals, *, n, N, M, h, m, delays, score, validate, observer_wi
     if min(hs) > 0:
         min_support(fn, np.asarray(hs), signals.host_dt)
     K = signals.n_inputs
+    for name, value in (("m", m), ("delays", delays)):
+        per_input_lists(fn, name, value, K)
     if m is not None:
         if isinstance(m, (str, bytes)) or not isinstance(m, (list, tuple)):
             raise TypeError(f"{fn}(): m must list, per input, the numerator orders to try "

@@ -324,7 +324,7 @@ def _load_signals(args, saved=None):
         if saved is not None:  # validate/report: the model's own lines
             trend = saved
             sig = trend.apply(sig, offset=bool(args.offset))
-            if trend.kind == "linear" and _another_clock(args, sig):
+            if trend.kind == "linear" and _another_clock(args, sig, trend.t0):
                 # the lines are read at this file's times: from 0 under --dt (the DaISy
                 # heater's hold-out file: fit 58.3 % under --dt 2, 21.5 % under --time time)
                 print(f"warning: --detrend linear: the model's lines start at t={trend.t0:.15g} "
@@ -454,22 +454,25 @@ def _record(args, sig, trend) -> dict:
             "time": args.time, "start": float(sig.t0)}
 
 
-def _another_clock(args, sig) -> bool:
+def _another_clock(args, sig, lines_t0: float) -> bool:
     """Whether this file's times may not be the identification record's clock, on which the
-    saved linear lines were fitted: the same file read from another first time, or another
-    file where either command read no time column (--dt counts from 0 in each file). Two
-    time columns are trusted; a record saved before 2026-11-28 (no clock saved): --dt."""
+    saved linear lines were fitted: the same file read from another first time; another
+    file where either command read no time column (--dt counts from 0 in each file), or whose
+    times start before the lines do (a hold-out log whose clock restarts at 0: fit -788 %,
+    unsaid, a review); a record saved before 2026-11-28 (no clock saved): --dt, or times
+    before the lines' start."""
     with open(_model_path(args), "rb") as fh:  # load_model has read and checked it
         saved = json.loads(fh.read().decode("utf-8")).get("record") or {}
+    before = float(sig.t0) < lines_t0 - 0.5 * sig.host_dt
     if "time" not in saved:
-        return args.time is None
+        return args.time is None or before
     try:
         same = os.path.samefile(saved.get("file", ""), args.file)
     except OSError:
         same = False
-    if same:
+    if same:  # (an earlier stretch of the same record is on its clock)
         return float(sig.t0) != saved.get("start")
-    return args.time is None or saved["time"] is None
+    return args.time is None or saved["time"] is None or before
 
 
 def _record_note(path: str, args, sig) -> None:

@@ -264,8 +264,20 @@ def refine(
                           "t1)) to keep it apart", stacklevel=2)
         # scored where the search scored (its E, and the table's, were of its validate
         # window; refine scored the whole record: value and the table's E disagreed)
-        validate = start.validate if validate is None else validate
-        observer_window = start.observer_window if observer_window is None else observer_window
+        if validate is None and start.validate is not None:
+            end = signals.t0 + (signals.n_samples - 1) * signals.host_dt
+            half = 0.5 * signals.host_dt
+            if signals.t0 - half <= start.validate[0] and start.validate[1] <= end + half:
+                validate = start.validate
+                if observer_window is None:
+                    observer_window = start.observer_window
+            else:  # the identification data alone, as the identify warning advises
+                warnings.warn(f"refine(): the search's validate window {start.validate} "
+                              f"lies outside these signals [{signals.t0:g}, {end:g}]: scored "
+                              "on refine's default window instead (give validate= to "
+                              "choose)", stacklevel=2)
+        elif observer_window is None and validate is None:
+            observer_window = start.observer_window
         starts = [start.best(i) for i in range(min(top, len(start)))]
         span = max(_kernel_span(_box(signals, s, bounds), vary, s) for s in starts)
         runs = []

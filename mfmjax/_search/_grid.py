@@ -83,23 +83,6 @@ def delay_grids(delays) -> list[list[float]]:
             for k, dk in enumerate(delays)]
 
 
-def _per_input_lists(name: str, value, K: int) -> None:
-    """Refuse a flat list of several numbers for `m` or `delays`: one list per input is the
-    form, and delays=(0, 5) on two inputs read as 0 on one and 5 on the other, where "try 0
-    and 5" was as likely meant (on one input it was refused by count, the fix unsaid)."""
-    if value is None or isinstance(value, str) or not hasattr(value, "__len__"):
-        return
-    items = list(value)
-    if len(items) > 1 and all(np.ndim(v) == 0 for v in items):
-        flat = [v.item() if hasattr(v, "item") else v for v in items]
-        raise ValueError(
-            f"search(): {name}={flat} is a flat list; give one list per input ({K}): e.g. "
-            f"{name}=[{tuple(flat)}{', ...' if K > 1 else ''}] to try "
-            f"{' and '.join(map(str, flat))} on the first input"
-            + (f", or {name}={[(v,) for v in flat]} for one value per input" if len(flat) == K
-               else ""))
-
-
 def structures(n_grid, m_grid, K: int) -> list[tuple[int, tuple[int, ...]]]:
     out = []
     for n in sorted(set(int(v) for v in n_grid)):
@@ -222,8 +205,6 @@ def plan_search(signals: Signals, *, n, N, M, h, m, delays, score, validate, obs
     N_grid = distinct([float(v) for v in grid_values(N, "N")])
     M_grid = distinct([float(v) for v in grid_values(M, "M")])
     h_grid = distinct([float(v) for v in grid_values(h, "h")])
-    for name, value in (("m", m), ("delays", delays)):
-        _per_input_lists(name, value, K)
     if m is not None:
         m = [grid_values(mk, f"m[{k}]") for k, mk in enumerate(m)]
         if len(m) != K:
