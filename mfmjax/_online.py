@@ -266,7 +266,7 @@ class OnlineConfig(eqx.Module):
         if not isinstance(offset, (bool, np.bool_)):  # "false" would read as True
             raise TypeError(f"OnlineConfig(): offset must be True or False, got {offset!r}")
         self.offset = bool(offset)
-        p = max(self.n) + 1 + sum(max(mk) + 1 for mk in self.m) + int(self.offset)
+        p = parameter_count(self)
         # the first identification's window (n_start intervals) must leave the search enough
         # valid samples (as `identify` requires): h = 600 on a 500-sample window passed here
         # and raised at the first identification, at every retry (the state does not advance)
@@ -458,7 +458,7 @@ def _plan_grid(config: OnlineConfig, intervals: int, delays: tuple, h: tuple | N
     bound = config.window_bound(intervals)
     span = min(config.span_bound, bound * dt / 2)
     template = _window_signals(config, np.zeros(bound), np.zeros((bound, config.n_inputs)), 0.0)
-    p = config.n_max + 1 + sum(max(mk) + 1 for mk in config.m) + int(config.offset)
+    p = parameter_count(config)
     if config.eta is not None:
         eta = np.resize(np.asarray(config.eta), p)
     else:  # paper mode: the paper's eta = ones (Table 1), the offset's entry too
@@ -1428,6 +1428,16 @@ def load(path) -> OnlineState:
 
 
 # -- convenience wrapper ------------------------------------------------------------------------
+
+
+def parameter_count(config) -> int:
+    """The padded layout's length (a_0..a_nmax, each input's b up to its largest order that
+    some structure uses, the offset), as the search builds it: an m above every n (m=[(0, 3)]
+    with n=(1, 2)) counted 3 and the search's eta check refused the default eta."""
+    structs = structures(config.n, config.m, config.n_inputs)
+    return (max(s[0] for s in structs) + 1
+            + sum(max(s[1][k] for s in structs) + 1 for k in range(config.n_inputs))
+            + int(config.offset))
 
 
 def _plus(count, more: int):

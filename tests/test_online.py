@@ -793,6 +793,16 @@ def test_samples_fed_one_at_a_time_less_often_than_dt_are_said():
     assert "missing" not in whole.events[0] and whole.events[0]["valid"]
 
 
+def test_a_numerator_order_above_every_n_does_not_widen_the_layout():
+    """m=[(0, 3)] with n=(1, 2): the search drops m = 3 (m_k <= n), but the config counted
+    it in eta's layout, and the first identification raised "search(): eta must have 5
+    entries ... got 8" of the paper mode's default eta (a review)."""
+    from mfmjax._online import _plan_for
+
+    cfg = _config(n=(1, 2), m=[(0, 3), (0,)], mode="paper")
+    assert _plan_for(cfg, cfg.n_start).eta.shape == (3 + 1 + 1 + 1,)  # a_0..a_2, b_10, b_20, offset
+
+
 def test_a_misspelled_identifier_argument_is_named():
     """keep_histroy=False beside a config said "give either config or its settings as
     keywords, not both": the misspelling was not named."""
