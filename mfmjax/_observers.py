@@ -148,6 +148,11 @@ def validation_window(signals: Signals, window, observer_window, n: int, fn: str
     else:
         w0, w1 = _b.window(fn, "validate" if name == "validate window" else name, window)
         v0, v1 = round((w0 - t0) / dt), round((w1 - t0) / dt)
+        if 0 <= v0 and v1 <= T - 1 and v1 <= v0 and w0 < w1:  # (it said "must lie inside")
+            raise ValueError(
+                f"{fn}(): {name} ({w0:g}, {w1:g}) rounds to one sample (t = "
+                f"{t0 + v0 * dt:g}: the ends are read at the nearest samples, dt = {dt:g}); "
+                f"widen it to at least {max(MIN_WINDOW, 2 * n)} samples")
         if v0 < 0 or v1 > T - 1 or v1 <= v0:
             raise ValueError(
                 f"{fn}(): {name} ({w0:g}, {w1:g}) must lie inside the record "
@@ -360,6 +365,8 @@ def moving_final_states(model: Model, signals: Signals, T_ob: float, times):
             f"moving_final_states(): every t_j must have T_ob of data before it inside the "
             f"record [{signals.t0:.15g}, {end:.15g}]: t_j = {times[j]:.15g} (times[{j}]) "
             + ("lies after its end" if e_np[j] > signals.n_samples - 1 else
+               f"has less than T_ob = {T_ob:g} before it; T_ob is longer than the record"
+               if length > signals.n_samples else  # (it named an "earliest" past the end)
                f"has less than T_ob = {T_ob:g} before it; the earliest is "
                f"{signals.t0 + (length - 1) * signals.host_dt:.15g}"))
     try:

@@ -253,6 +253,16 @@ def test_moving_final_states_refuses(data):
         mfmjax.moving_final_states(model, sig, 5.0, [10.0, 3.0])
     with pytest.raises(ValueError, match=rf"t_j = {end + 1:g} \(times\[0\]\) lies after its end"):
         mfmjax.moving_final_states(model, sig, 5.0, [end + 1])
+    # a T_ob longer than the record: it named an "earliest" t_j past the record's end
+    with pytest.raises(ValueError, match=r"has less than T_ob = .* before it; T_ob is longer "
+                                         r"than the record"):
+        mfmjax.moving_final_states(model, sig, end + 50.0, [end])
+    # a window that rounds to one sample: it said "must lie inside the record with start <
+    # end", which it did (an audit)
+    with pytest.raises(ValueError, match=r"observe\(\): window \(10, 10.004\) rounds to one "
+                                         r"sample \(t = 10: the ends are read at the nearest "
+                                         r"samples"):
+        mfmjax.observe(model, sig, (10.0, 10.004))
     with pytest.raises(ValueError, match=r"need at least .* \(T_ob = 0.1: each window ends at its "
                                          r"t_j\)"):
         mfmjax.moving_final_states(model, sig, 0.1, [15.0])
