@@ -817,8 +817,8 @@ def _refuse_nonfinite(source: str, columns: list) -> None:
 
 def held_inputs_note(signals) -> tuple[str, ...]:
     """A note (or none) naming the inputs read as foh (not smooth) that switch between levels:
-    at least half the steps repeat the last sample and the jumps are a tenth of the range or
-    more (a quantised sensor's are a quantum), or two or three levels only (a PRBS clocked
+    at least half the steps repeat the last sample and most jumps cross more than one level
+    (a quantised sensor moves to the next one), or two or three levels only (a PRBS clocked
     every sample), with two changes or more: a PRBS, a DAC or a controller's output, held
     between samples, which foh reads as linear between them (an SRIVC fit of such a record
     moved b_11 by 4.85 standard errors, status "converged", nothing said; an audit of
@@ -833,10 +833,12 @@ def held_inputs_note(signals) -> tuple[str, ...]:
         changes = np.flatnonzero(d != 0)
         if rule != "foh" or smooth or changes.size < 2:
             continue
-        runs = (np.mean(d == 0) >= 0.5  # runs, by jumps of a tenth of the range or more (a
-                and np.median(np.abs(d[changes])) >= 0.1 * np.ptp(x))  # quantised sensor's
-        if runs or np.unique(x).size <= 3:  # are a quantum); a PRBS clocked every sample:
-            held.append(signals.input_names[k])  # two levels
+        levels = np.unique(x)
+        quantum = float(np.min(np.diff(levels)))
+        across = np.mean(np.abs(d[changes]) > 1.5 * quantum)  # jumps over several levels: a
+        # quantised sensor moves to the next level (a sine at 0.25 of 2 was flagged)
+        if levels.size <= 3 or (np.mean(d == 0) >= 0.5 and across >= 0.5):  # (a PRBS clocked
+            held.append(signals.input_names[k])  # every sample: two levels)
     if not held:
         return ()
     return (f"the input(s) {held} switch between levels (runs of equal samples, or two or three "

@@ -474,12 +474,14 @@ def test_held_inputs_read_as_foh_are_named_and_sensors_are_not():
     runs = np.repeat(rng.choice([-1.0, 1.0], 250), 8)
     clocked = rng.choice([-1.0, 1.0], 2000)
     sensor = np.round(np.sin(0.3 * t), 1)  # 0.1 resolution: runs of equal samples
+    coarse = np.round(4 * np.sin(0.1 * t)) / 4  # 0.25 of a range of 2 (9 levels, a review)
     step = (t > 10).astype(float)
     y = np.sin(t) + 0.1 * rng.standard_normal(2000)
-    sig = Signals(y, np.column_stack([runs, clocked, sensor, step]), dt=0.05,
-                  input_names=["prbs", "fast", "sensor", "step"])
+    multi = np.repeat(rng.normal(size=250), 8)  # a held multi-level signal
+    sig = Signals(y, np.column_stack([runs, clocked, sensor, step, coarse, multi]), dt=0.05,
+                  input_names=["prbs", "fast", "sensor", "step", "coarse", "multi"])
     note, = held_inputs_note(sig)
-    assert note.startswith("the input(s) ['prbs', 'fast'] switch between levels"), note
+    assert note.startswith("the input(s) ['prbs', 'fast', 'multi'] switch between levels"), note
     assert held_inputs_note(Signals(y, np.column_stack([runs, clocked]), dt=0.05,
                                     intersample="zoh")) == ()
     assert held_inputs_note(Signals(y, runs, dt=0.05, smooth=True)) == ()
