@@ -526,6 +526,9 @@ class Signals(eqx.Module):
         self.y, self.u, self.delays = y, u, delays
         self.dt, self.dt_host, self.t0 = np.float64(dt), float(dt), float(t0)
         note = ""
+        if offset is not None and not isinstance(offset, (bool, np.bool_)):  # "no" read True
+            raise TypeError(f"Signals(): offset must be True, False or None (the data decide), "
+                            f"got {offset!r}")
         if offset is None:
             offset, note = offset_needed(y, u, names)
         self.intersample, self.smooth, self.offset = intersample, smooth, bool(offset)

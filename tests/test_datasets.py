@@ -91,3 +91,33 @@ def test_daisy_says_when_path_is_another_file(tmp_path):
                                          r"of heat_exchanger \(t, q, theta\): line 1 has 7 "
                                          r"fields; check path="):
         daisy("heat_exchanger", path=str(other))
+
+
+@pytest.mark.skipif(not os.path.isdir(SHARED), reason="shared data not present")
+def test_daisy_refuses_another_record_of_as_many_columns():
+    """The heating system's file (t, u, y) loaded as the heat exchanger (t, q, theta): 801
+    samples labelled dt = 1 and q -> theta (an audit of 2026-11-28); the row count tells."""
+    other = os.path.join(SHARED, "daisy-heating-system", "heating_system.dat")
+    with pytest.raises(ValueError, match=r"daisy\(\): .*heating_system.dat has 801 rows, "
+                                         r"heat_exchanger has 4000; check path="):
+        daisy("heat_exchanger", path=other)
+
+
+def test_simulated_data_of_a_model_with_an_offset_have_the_term():
+    """`simulated_experiment` of a model with an offset term returned Signals without it (the
+    default rule saw an output from rest at zero), so every fit left it out; and an offset
+    given as text ("no", "false") read as True."""
+    import mfmjax
+    from mfmjax.datasets import simulated_experiment
+
+    model = mfmjax.Model.from_coefficients([1.0, 3.5, 3.5, 1.0], [[1.0, 0.5], [0.8]],
+                                           intersample=("foh", "zoh"), offset=2.5)
+    sig = simulated_experiment(model, dt=0.05, n_samples=400)
+    assert sig.offset and model.has_offset
+    plain = simulated_experiment(mfmjax.Model.from_coefficients([1.0, 3.5, 3.5, 1.0],
+                                                                [[1.0, 0.5], [0.8]]),
+                                 dt=0.05, n_samples=400)
+    assert not plain.offset  # the default rule, as before
+    for bad in ("no", "false", 2):
+        with pytest.raises(TypeError, match=r"Signals\(\): offset must be True, False or None"):
+            mfmjax.Signals(np.asarray(sig.y), np.asarray(sig.u), dt=0.05, offset=bad)

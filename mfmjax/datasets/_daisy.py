@@ -16,6 +16,7 @@ import numpy as np
 from .._signals import Signals, read_csv
 
 # name: (folder, file, columns, output, inputs, dt, intersample, description)
+ROWS = {"heat_exchanger": 4000, "dryer": 867, "glass_furnace": 1247, "heating_system": 801}
 DAISY = {
     "heat_exchanger": ("daisy-heat-exchanger", "exchanger.dat", ["t", "q", "theta"], "theta",
                        ["q"], 1.0, "foh", "liquid-saturated steam heat exchanger (97-002): "
@@ -76,6 +77,11 @@ def daisy(name: str, *, path=None, offset: bool = True, output: str | None = Non
         raise ValueError(f"daisy(): {where} does not have the {len(cols)} columns of {name} "
                          f"({', '.join(cols)}): {str(err).split(': ', 1)[-1].split(' but ')[0]}"
                          f"; check path= (the file {file} of DaISy's {folder})") from None
+    rows = len(next(iter(data.values())))
+    if rows != ROWS[name]:  # another record of as many columns (the heating system's file
+        # loaded as the heat exchanger: 801 samples labelled dt = 1, q -> theta; an audit)
+        raise ValueError(f"daisy(): {where} has {rows} rows, {name} has {ROWS[name]}; check "
+                         f"path= (the file {file} of DaISy's {folder})")
     out = output or out
     outputs = [c for c in cols if c not in inputs and c not in ("t", "k")]
     if out not in outputs:  # the time or sample-index column is no output
