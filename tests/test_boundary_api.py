@@ -259,7 +259,7 @@ def test_moving_final_states_refuses(data):
         mfmjax.moving_final_states(model, sig, end + 50.0, [end])
     # a window that rounds to one sample: it said "must lie inside the record with start <
     # end", which it did (an audit)
-    with pytest.raises(ValueError, match=r"observe\(\): window \(10, 10.004\) rounds to one "
+    with pytest.raises(ValueError, match=r"observe\(\): window \(10, 10\.004\) rounds to one "
                                          r"sample \(t = 10: the ends are read at the nearest "
                                          r"samples"):
         mfmjax.observe(model, sig, (10.0, 10.004))

@@ -164,9 +164,7 @@ def test_report_of_detrended_data_says_its_curves_are_deviations(files, capsys, 
                  "4", "--h", "1.5", "--delays", "0.15", "--detrend", "constant", "--save",
                  str(saved)]) == 0
     capsys.readouterr()
-    level = mfmjax.detrend(mfmjax.Signals.from_csv(
-        folder / "data.csv", output="temp", inputs=["valve"], time="t", intersample="zoh"),
-        "constant")[1].y_level
+    level = np.mean(np.loadtxt(folder / "data.csv", delimiter=",", skiprows=1)[:, 2])
     assert main(["report", str(saved), str(folder / "data.csv"), *ARGS, "--detrend",
                  "constant", "-o", str(out)]) == 0
     assert f"compare temp - {float(level):.6g} (deviation) on " in capsys.readouterr().out

@@ -240,7 +240,7 @@ def test_exports(noisy, tmp_path):
         # a flat list on two inputs read as one value per input ("try 0 and 0.5" as likely
         # meant; OnlineConfig refuses a flat m too)
         (dict(h=(1.0,), delays=(0.0, 0.5)),
-         r"delays=\[0.0, 0.5\] is a flat list; give one list per input \(2\): e.g. "
+         r"delays=\[0\.0, 0\.5\] is a flat list; give one list per input \(2\): e.g. "
          r"delays=\[\(0.0, 0.5\), ...\] .* or delays=\[\(0.0,\), \(0.5,\)\] for one value"),
         (dict(h=(1.0,), m=(0, 1)), r"m=\[0, 1\] is a flat list"),
         # eta = 1 on a_3 alone (the unit-free choice for n = 3) leaves n = 2 no nonzero
