@@ -78,8 +78,9 @@ def daisy(name: str, *, path=None, offset: bool = True, output: str | None = Non
                          f"({', '.join(cols)}): {str(err).split(': ', 1)[-1].split(' but ')[0]}"
                          f"; check path= (the file {file} of DaISy's {folder})") from None
     rows = len(next(iter(data.values())))
-    if rows != ROWS[name]:  # another record of as many columns (the heating system's file
-        # loaded as the heat exchanger: 801 samples labelled dt = 1, q -> theta; an audit)
+    if path is not None and rows != ROWS[name]:  # a file given: another record of as many
+        # columns (the heating system's loaded as the heat exchanger: 801 samples labelled
+        # dt = 1, q -> theta; an audit); a record found by its own folder and name is read
         raise ValueError(f"daisy(): {where} has {rows} rows, {name} has {ROWS[name]}; check "
                          f"path= (the file {file} of DaISy's {folder})")
     out = output or out
