@@ -355,6 +355,13 @@ def _load_signals(args, saved=None):
     return sig, None
 
 
+def _saved_record(path: str):
+    """The `record` of a model file (how its identification data were read), or None;
+    `load_model` has read and checked the file."""
+    with open(path, "rb") as fh:
+        return json.loads(fh.read().decode("utf-8")).get("record")
+
+
 def _saved_lines(path: str, args):
     """The lines --detrend removed from the model's identification data (`save_model`'s
     record), when this command detrends the same way; else None."""
@@ -362,8 +369,7 @@ def _saved_lines(path: str, args):
 
     if not getattr(args, "detrend", None):
         return None
-    with open(path, "rb") as fh:  # load_model has read and checked it
-        saved = json.loads(fh.read().decode("utf-8")).get("record")
+    saved = _saved_record(path)
     trend = saved.get("trend") if isinstance(saved, dict) else None
     if not isinstance(trend, dict) or trend.get("kind") != args.detrend:
         return None
@@ -430,8 +436,7 @@ def _names_note(model, sig, path: str) -> None:
     nothing said). Models without names of their own (y, u1, ...) are not compared, unless
     the file says they are a CSV's columns (`_record`: columns really named y, u1, u2, given
     as u2, u1, gave fit 69 % against 99 % unsaid)."""
-    with open(path, "rb") as fh:  # load_model has read and checked it
-        saved = json.loads(fh.read().decode("utf-8")).get("record")
+    saved = _saved_record(path)
     from_file = isinstance(saved, dict) and "columns" in saved
     default = not from_file and model.output_name == "y" and model.input_names == tuple(
         f"u{k + 1}" for k in range(model.n_inputs))
@@ -461,8 +466,7 @@ def _another_clock(args, sig, lines_t0: float) -> bool:
     times start before the lines do (a hold-out log whose clock restarts at 0: fit -788 %,
     unsaid, a review); a record saved before 2026-11-28 (no clock saved): --dt, or times
     before the lines' start."""
-    with open(_model_path(args), "rb") as fh:  # load_model has read and checked it
-        saved = json.loads(fh.read().decode("utf-8")).get("record") or {}
+    saved = _saved_record(_model_path(args)) or {}
     before = float(sig.t0) < lines_t0 - 0.5 * sig.host_dt
     if "time" not in saved:
         return args.time is None or before
@@ -480,8 +484,7 @@ def _record_note(path: str, args, sig) -> None:
     identification data (saved by identify/search --save): --detrend differs (a model of
     detrended data on the raw record gave fit -23434 % with nothing said), or the sampling
     step differs tenfold or more (a time column in minutes against seconds)."""
-    with open(path, "rb") as fh:  # load_model has read and checked it
-        saved = json.loads(fh.read().decode("utf-8")).get("record")
+    saved = _saved_record(path)
     if not isinstance(saved, dict):
         return
     was, now = saved.get("detrend"), getattr(args, "detrend", None)
